@@ -1,0 +1,124 @@
+"""Pinhole cameras in the OpenCV convention.
+
+``x_cam = R @ x_world + t`` and ``u = K @ x_cam / z``; pixel centres sit at
+integer coordinates ``0..W-1``. Every stage of pis3r speaks this convention.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def intrinsics(focal: float, width: int, height: int) -> np.ndarray:
+    """``(3, 3)`` K with one focal length and the principal point at the image centre."""
+    return np.array(
+        [[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+    )
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: intrinsics ``K (3, 3)``, world-to-camera ``R (3, 3)``, ``t (3,)``,
+    and the image size it was taken with (``width``, ``height`` in pixels)."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K", np.asarray(self.K, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+
+    @classmethod
+    def identity(cls, K: np.ndarray, width: int, height: int) -> "Camera":
+        """The camera at the world origin looking down +z (the reference camera)."""
+        return cls(K, np.eye(3), np.zeros(3), width, height)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, ``(3,)``."""
+        return -self.R.T @ self.t
+
+    @property
+    def focal(self) -> float:
+        """Mean of ``fx`` and ``fy``."""
+        return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
+
+    @property
+    def projection(self) -> np.ndarray:
+        """``(3, 4)`` projection matrix ``K [R | t]``."""
+        return self.K @ np.hstack([self.R, self.t[:, None]])
+
+    def world_to_camera(self, points: np.ndarray) -> np.ndarray:
+        """``(N, 3)`` world points to ``(N, 3)`` camera-frame points."""
+        return points @ self.R.T + self.t
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project ``(N, 3)`` world points; returns pixels ``(N, 2)`` and depth ``z (N,)``.
+
+        Points with ``z <= 0`` get non-finite pixels; callers mask them by ``z``.
+        """
+        cam = self.world_to_camera(np.asarray(points, dtype=np.float64))
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uvw = cam @ self.K.T
+            uv = uvw[:, :2] / z[:, None]
+        return uv, z
+
+    def unproject(self, depth: np.ndarray) -> np.ndarray:
+        """World points ``(H, W, 3)`` of a z-depth map ``(H, W)`` taken by this camera."""
+        h, w = depth.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.K).T
+        cam = rays * depth[..., None]
+        return (cam - self.t) @ self.R
+
+    def shifted(self, offset_x: float, offset_y: float, width: int, height: int) -> "Camera":
+        """The same camera on a larger canvas whose pixel ``(offset_x, offset_y)`` is
+        this camera's pixel ``(0, 0)``: principal point moved by the offset."""
+        K = self.K.copy()
+        K[0, 2] += offset_x
+        K[1, 2] += offset_y
+        return Camera(K, self.R, self.t, width, height)
+
+    def scaled(self, factor: float) -> "Camera":
+        """The camera of the image resized by ``factor`` (pixel centres preserved)."""
+        K = self.K.copy()
+        K[:2, :2] *= factor
+        K[:2, 2] = (K[:2, 2] + 0.5) * factor - 0.5
+        return Camera(
+            K, self.R, self.t, round(self.width * factor), round(self.height * factor)
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Camera":
+        return cls(data["K"], data["R"], data["t"], data["width"], data["height"])
+
+
+def relative_pose(a: Camera, b: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` taking camera-``a`` coordinates to camera-``b`` coordinates."""
+    R = b.R @ a.R.T
+    return R, b.t - R @ a.t
+
+
+def fundamental_matrix(a: Camera, b: Camera) -> np.ndarray:
+    """``(3, 3)`` F with ``x_b^T F x_a = 0`` for pixels of the same point."""
+    R, t = relative_pose(a, b)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)

@@ -1,0 +1,39 @@
+"""One exception hierarchy for everything pis3r refuses to do.
+
+The CLI prints ``str(error)`` on one line and exits with ``error.exit_code``;
+library callers catch :class:`Pis3rError`.
+"""
+
+
+class Pis3rError(Exception):
+    """Root of every error pis3r raises on purpose."""
+
+    exit_code = 1
+
+
+class InputError(Pis3rError):
+    """An input image (or argument) cannot be used: unreadable, empty, too few..."""
+
+    exit_code = 2
+
+
+class NotEnoughOverlapError(InputError):
+    """The images share too little of the scene to be registered."""
+
+
+class ReconstructionError(Pis3rError):
+    """Geometry could not be recovered from images that were otherwise fine."""
+
+    exit_code = 3
+
+
+class WeightsError(Pis3rError):
+    """A model weight file is missing, corrupt or does not fit the model."""
+
+    exit_code = 4
+
+
+class OutputError(Pis3rError):
+    """Results could not be written (unwritable directory, full disk...)."""
+
+    exit_code = 5

@@ -1,0 +1,250 @@
+"""Reading photos (any depth, channels, EXIF orientation) and writing outputs atomically."""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+import cv2
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from pis3r.errors import InputError, OutputError
+
+ImageLike = Union[str, os.PathLike, np.ndarray, Image.Image]
+
+# Beyond this the decoded pixels alone would not fit in memory of a normal machine.
+MAX_DECODE_PIXELS = 400_000_000
+
+_EXIF_ORIENTATION = 0x0112
+_EXIF_IFD = 0x8769
+_FOCAL_LENGTH = 0x920A
+_FOCAL_35MM = 0xA405
+_FOCAL_PLANE_X_RES = 0xA20E
+_FOCAL_PLANE_UNIT = 0xA210
+_EXIF_WIDTH = 0xA002
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+
+
+@dataclass
+class Photo:
+    """A decoded input image and what its file said about the camera.
+
+    ``pixels``: ``(H, W, 3)`` float32 RGB in ``[0, 1]``, EXIF orientation applied.
+    ``focal_px``: focal length in pixels of ``pixels`` derived from EXIF, or ``None``.
+    """
+
+    pixels: np.ndarray
+    name: str
+    focal_px: float | None = None
+    focal_evidence: str = ""
+
+    @property
+    def height(self) -> int:
+        return self.pixels.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.pixels.shape[1]
+
+
+def to_float_rgb(array: np.ndarray, name: str = "image") -> np.ndarray:
+    """Any ``(H, W)``, ``(H, W, 1|3|4)`` uint8/uint16/float array to ``(H, W, 3)`` float32 in [0, 1].
+
+    Alpha is dropped (the colour underneath is kept); grey is repeated to RGB.
+    """
+    a = np.asarray(array)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] not in (3, 4):
+        raise InputError(f"{name}: expected an (H, W) or (H, W, 3|4) image, got shape {a.shape}")
+    a = a[..., :3]
+    if a.shape[0] < 2 or a.shape[1] < 2:
+        raise InputError(f"{name}: image is empty ({a.shape[1]}x{a.shape[0]} pixels)")
+    if a.dtype == np.uint8:
+        out = a.astype(np.float32) / 255.0
+    elif a.dtype == np.uint16:
+        out = a.astype(np.float32) / 65535.0
+    elif a.dtype == bool:
+        out = a.astype(np.float32)
+    elif np.issubdtype(a.dtype, np.integer):
+        out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
+    elif np.issubdtype(a.dtype, np.floating):
+        out = a.astype(np.float32)
+        if not np.all(np.isfinite(out)):
+            raise InputError(f"{name}: image has NaN or infinite values")
+        if out.size and out.max() > 1.0 + 1e-3:
+            out = out / 255.0 if out.max() <= 255.0 else out / out.max()
+    else:
+        raise InputError(f"{name}: unsupported pixel type {a.dtype}")
+    return np.ascontiguousarray(np.clip(out, 0.0, 1.0))
+
+
+def _exif_focal(exif: Image.Exif, width: int, height: int) -> tuple[float | None, str]:
+    sub = exif.get_ifd(_EXIF_IFD) if exif else {}
+    f35 = sub.get(_FOCAL_35MM)
+    if f35:
+        # 35-mm equivalent: the long side of a full-frame sensor is 36 mm.
+        return float(f35) / 36.0 * max(width, height), f"EXIF 35mm-equivalent {float(f35):g} mm"
+    f_mm = sub.get(_FOCAL_LENGTH)
+    res = sub.get(_FOCAL_PLANE_X_RES)
+    unit = _UNIT_MM.get(int(sub.get(_FOCAL_PLANE_UNIT, 2) or 2))
+    exif_w = sub.get(_EXIF_WIDTH)
+    if f_mm and res and unit:
+        px_per_mm = float(res) / unit
+        focal = float(f_mm) * px_per_mm
+        if exif_w:
+            focal *= max(width, height) / float(exif_w)
+        if np.isfinite(focal) and focal > 0:
+            return focal, f"EXIF focal length {float(f_mm):g} mm + focal-plane resolution"
+    return None, ""
+
+
+def read_image(source: ImageLike, name: str | None = None) -> Photo:
+    """Decode a path, numpy array or PIL image into a :class:`Photo`.
+
+    Files: EXIF orientation applied, 8/16-bit, grey and RGBA converted, EXIF focal read.
+    Raises :class:`InputError` with one line for anything unreadable.
+    """
+    if isinstance(source, np.ndarray):
+        return Photo(to_float_rgb(source, name or "array"), name or "array")
+    if isinstance(source, Image.Image):
+        img = ImageOps.exif_transpose(source)
+        return Photo(_pil_to_float(img, name or "image"), name or "image")
+    path = Path(source)
+    label = name or path.name
+    if not path.is_file():
+        raise InputError(f"{path}: no such image file")
+    data = path.read_bytes()
+    if not data:
+        raise InputError(f"{path}: file is empty")
+    exif = None
+    try:
+        with Image.open(_io.BytesIO(data)) as probe:
+            if probe.width * probe.height > MAX_DECODE_PIXELS:
+                raise InputError(
+                    f"{path}: {probe.width}x{probe.height} is too large to decode "
+                    f"(limit {MAX_DECODE_PIXELS // 1_000_000} MP)"
+                )
+            exif = probe.getexif()
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError, ValueError):
+        exif = None
+    decoded = cv2.imdecode(
+        np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
+    )
+    if decoded is None:
+        try:
+            with Image.open(_io.BytesIO(data)) as img:
+                img.load()
+                pixels = _pil_to_float(ImageOps.exif_transpose(img), label)
+        except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
+            raise InputError(f"{path}: not a readable image ({exc.__class__.__name__})") from None
+    else:
+        if decoded.ndim == 3 and decoded.shape[2] >= 3:
+            decoded = cv2.cvtColor(decoded, cv2.COLOR_BGRA2RGBA if decoded.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        pixels = _apply_orientation(to_float_rgb(decoded, label), exif)
+    focal, evidence = _exif_focal(exif, pixels.shape[1], pixels.shape[0]) if exif else (None, "")
+    return Photo(pixels, label, focal, evidence)
+
+
+def _pil_to_float(img: Image.Image, name: str) -> np.ndarray:
+    if img.mode in ("I;16", "I;16B", "I;16L"):
+        return to_float_rgb(np.asarray(img, dtype=np.uint16), name)
+    if img.mode == "I":
+        return to_float_rgb(np.asarray(img).astype(np.float32) / 65535.0, name)
+    if img.mode == "F":
+        return to_float_rgb(np.asarray(img, dtype=np.float32), name)
+    return to_float_rgb(np.asarray(img.convert("RGBA" if "A" in img.mode else "RGB")), name)
+
+
+def _apply_orientation(pixels: np.ndarray, exif: Image.Exif | None) -> np.ndarray:
+    orientation = int(exif.get(_EXIF_ORIENTATION, 1)) if exif else 1
+    ops = {
+        2: lambda a: a[:, ::-1],
+        3: lambda a: a[::-1, ::-1],
+        4: lambda a: a[::-1],
+        5: lambda a: np.transpose(a, (1, 0, 2)),
+        6: lambda a: np.rot90(a, -1),
+        7: lambda a: np.rot90(a, 1)[::-1],
+        8: lambda a: np.rot90(a, 1),
+    }
+    op = ops.get(orientation)
+    return np.ascontiguousarray(op(pixels)) if op else pixels
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """``(H, W[, 3])`` float in [0, 1] to uint8 with rounding."""
+    return np.clip(np.rint(np.asarray(image, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write through a temp file in the same directory, then rename into place."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an ``(H, W)`` or ``(H, W, 3)`` image (float in [0, 1] or uint8)."""
+    a = image if image.dtype == np.uint8 else to_uint8(image)
+    if a.ndim == 3:
+        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".png", a)
+    if not ok:
+        raise OutputError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    _atomic_write(path, lambda h: h.write(data))
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    write_bytes(path, encode_png(image))
+
+
+def write_json(path: Path, data: dict) -> None:
+    write_bytes(path, (json.dumps(data, indent=2, allow_nan=False) + "\n").encode())
+
+
+def encode_ply(points: np.ndarray, colors: np.ndarray) -> bytes:
+    """Binary little-endian PLY of ``(N, 3)`` float points and ``(N, 3)`` colours in [0, 1]."""
+    points = np.asarray(points, dtype="<f4").reshape(-1, 3)
+    rgb = to_uint8(np.asarray(colors).reshape(-1, 3))
+    record = np.dtype(
+        [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    )
+    table = np.empty(len(points), dtype=record)
+    table["x"], table["y"], table["z"] = points.T
+    table["red"], table["green"], table["blue"] = rgb.T
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    return header.encode("ascii") + table.tobytes()
+
+
+def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
+    write_bytes(path, encode_ply(points, colors))
