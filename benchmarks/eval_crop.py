@@ -1,0 +1,76 @@
+"""pis3r (classical backend) on every real pair under the crop protocol, exact offset.
+
+    .venv/bin/python benchmarks/eval_crop.py [--data ../shared/data/real] [--crop 0.6] [--only NAME ...]
+
+For each pair folder (``ref.*``, ``tgt.*``): reference = centre crop of ``ref``, target =
+``tgt``, GT = ``ref``; pis3r's canvas is placed on the GT grid with its own ``ref_offset``
+(no registration). Prints one row per pair and the means per parallax class (from the
+folder's SOURCES.md). A pis3r failure is scored as an empty extension.
+
+Columns: ``cov`` share of the extension (GT outside the crop) filled; ``fill_*`` on the
+filled part of the extension; ``ext_*`` on the whole extension, unfilled = black (the issue
+2 bar); ``s`` seconds of pis3r itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pis3r.eval.baselines import MethodFailure, run_method
+from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, load_pair_cases, score_exact, score_failure
+
+COLUMNS = ("coverage", "fill_psnr", "fill_ssim", "fill_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
+HEADER = ("cov", "fPSNR", "fSSIM", "fLPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--crop", type=float, default=0.6)
+    parser.add_argument("--only", nargs="*", default=None, help="pair folder names to run (default: all)")
+    parser.add_argument("--timeout", type=float, default=600.0)
+    args = parser.parse_args()
+
+    cases = [c for c in load_pair_cases(args.data, args.crop) if not args.only or c.name in args.only]
+    print(f"{'pair':28s} {'class':9s} " + " ".join(f"{h:>7s}" for h in HEADER))
+    rows = []
+    started = time.perf_counter()
+    for case in cases:
+        try:
+            output = run_method("pis3r", case.reference, case.target, args.timeout)
+            row = {**score_exact(output.image, output.ref_offset, case, filled=output.filled),
+                   "seconds": output.seconds}
+            note = ""
+        except MethodFailure as exc:
+            row = {**score_failure(case), "seconds": math.nan}
+            note = f"  FAILED: {exc}"
+        rows.append((case.parallax_class, row))
+        print(f"{case.name:28s} {case.parallax_class:9s} " + " ".join(_fmt(row[k]) for k in COLUMNS) + note,
+              flush=True)
+
+    print()
+    for cls in (*PARALLAX_CLASSES, UNKNOWN_CLASS, "all"):
+        group = [row for c, row in rows if cls in ("all", c)]
+        if group:
+            means = {k: _mean([row[k] for row in group]) for k in COLUMNS}
+            print(f"{'mean ' + cls + f' ({len(group)})':28s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
+    print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def _fmt(value: float) -> str:
+    return f"{value:7.3f}" if abs(value) < 10 or not np.isfinite(value) else f"{value:7.2f}"
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Evaluation: the paper's protocol, image-quality and geometry metrics, peer baselines."""

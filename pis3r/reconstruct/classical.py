@@ -1,0 +1,288 @@
+"""The weight-free backend: features -> two-view geometry with focal self-calibration
+-> dense depth where views overlap -> edge-aware planar propagation elsewhere.
+
+Works offline on any machine. Steps, for the reference (view 0) and every other view:
+
+1. SIFT/RootSIFT matches (mutual + ratio), MAGSAC++ fundamental matrix.
+2. Degeneracy test: if one homography explains the epipolar inliers (parallax level
+   below the rotation threshold, :mod:`pis3r.parallax`), the pair is a rotation or a
+   plane: the homography model is used (depth is irrelevant there) and said so.
+3. Focal: ``--focal``, else EXIF, else self-calibration (minimum singular-value gap
+   of ``K^T F K`` for 3-D pairs, rotation homography for the homography model),
+   refined with the pose over all inliers; documented fallback 1.2 x longest side.
+4. Pose: essential matrix (MAGSAC++) + cheirality, then robust Sampson refinement.
+5. Depth: DIS flow after homography pre-warp, forward-backward, epipolar and
+   triangulation-angle checks, sparse triangulated matches as extra seeds; then
+   :func:`propagate_inverse_depth` fills what only one view sees.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pis3r.camera import Camera, intrinsics
+from pis3r.errors import InputError, NotEnoughOverlapError, ReconstructionError
+from pis3r.features import Matches, detect, match
+from pis3r.io import Photo
+from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
+from pis3r.reconstruct import geometry
+from pis3r.reconstruct.base import ReconstructOptions, register
+from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
+from pis3r.reconstruct.propagate import propagate_inverse_depth
+from pis3r.scene import Scene, View
+
+WORK_MAX_SIDE = 640
+# Relative jump of inverse depth between neighbours above which a pixel sits on a
+# depth edge: its point would be a "flying pixel" between fore- and background.
+DEPTH_EDGE_JUMP = 0.08
+# |t| / plane distance below which a homography pair is a pure rotation.
+ROTATION_TRANSLATION = 0.02
+
+
+def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
+    scale = min(1.0, max_side / max(image.shape[:2]))
+    if scale == 1.0:
+        return image, 1.0
+    size = (round(image.shape[1] * scale), round(image.shape[0] * scale))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale
+
+
+def _scaled_K(K: np.ndarray, scale: float) -> np.ndarray:
+    out = K.copy()
+    out[:2, :2] *= scale
+    out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
+    return out
+
+
+@register("classical")
+class ClassicalReconstructor:
+    """Weight-free two-view (and star-shaped multi-view) reconstruction."""
+
+    name = "classical"
+
+    def __init__(self, options: ReconstructOptions, propagation: str = "planar") -> None:
+        self.options = options
+        self.propagation = propagation
+
+    def reconstruct(self, photos: list[Photo]) -> Scene:
+        features = [detect(p.pixels) for p in photos]
+        ref = photos[0]
+        info: dict = {"backend": self.name, "warnings": []}
+        focal_ref, source = self._known_focal(ref)
+        views = [None] * len(photos)
+        ref_depths = []
+        for j in range(1, len(photos)):
+            matches = match(features[0], features[j])
+            if len(matches) < MIN_MATCHES:
+                raise NotEnoughOverlapError(
+                    f"these images do not overlap enough to stitch: {len(matches)} matches"
+                    + (f" between {ref.name} and {photos[j].name}" if len(photos) > 2 else "")
+                )
+            self._reject_identical(matches, ref, photos[j])
+            pair = self._pair(ref, photos[j], matches, focal_ref, source)
+            if j == 1:
+                info.update(pair["info"])
+                focal_ref, source = pair["focal_ref"], pair["focal_source"]
+            else:
+                info["warnings"] += pair["info"]["warnings"]
+            view_ref, view_j = pair["views"]
+            if ref_depths:
+                # Each pair has its own unknown scale; bring it to the first pair's.
+                ratio = _median_ratio(ref_depths[0], view_ref.depth)
+                view_j.camera = Camera(view_j.camera.K, view_j.camera.R, view_j.camera.t * ratio,
+                                       view_j.camera.width, view_j.camera.height)
+                view_j.depth = view_j.depth * ratio
+            else:
+                views[0] = view_ref
+            ref_depths.append(view_ref.depth)
+            views[j] = view_j
+        info["focal"] = float(focal_ref)
+        info["focal_source"] = source
+        return Scene(views, info)
+
+    # -- focal --------------------------------------------------------------------------
+    def _known_focal(self, photo: Photo) -> tuple[float | None, str]:
+        if self.options.focal:
+            return float(self.options.focal), "flag"
+        if photo.focal_px:
+            return float(photo.focal_px), f"EXIF ({photo.focal_evidence})"
+        return None, ""
+
+    @staticmethod
+    def _reject_identical(matches: Matches, a: Photo, b: Photo) -> None:
+        if a.pixels.shape == b.pixels.shape:
+            shift = np.linalg.norm(matches.pts_a - matches.pts_b, axis=1)
+            if np.median(shift) < 0.5 and np.abs(a.pixels - b.pixels).mean() < 2.0 / 255:
+                raise InputError(f"{a.name} and {b.name} are the same image: there is nothing to stitch")
+
+    # -- one pair -----------------------------------------------------------------------
+    def _pair(self, ref: Photo, other: Photo, matches: Matches, focal_ref, source) -> dict:
+        w, h = ref.width, ref.height
+        parallax: ParallaxEstimate = parallax_from_matches(matches, float(np.hypot(w, h)))
+        F, f_inl = geometry.fundamental(matches, w, h)
+        warnings: list[str] = []
+        if F is None or f_inl.sum() < MIN_MATCHES:
+            raise NotEnoughOverlapError(
+                f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches"
+            )
+        inliers = matches.subset(f_inl)
+        H, h_inl = geometry.homography(inliers, w, h)
+        if H is None:
+            raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
+        model = "homography" if parallax.cls == "rotation" else "3d"
+        reason = (
+            f"one homography explains the matches (parallax level {parallax.level:.2f} %): rotation or planar scene"
+            if model == "homography"
+            else f"parallax level {parallax.level:.2f} %: full 3-D model"
+        )
+        focal_other_known = self.options.focal or other.focal_px
+        if focal_ref is None:
+            if model == "homography":
+                focal_ref = geometry.focal_from_homography(H, w, h)
+                source = "self-calibrated (rotation homography)"
+            else:
+                focal_ref, _ = geometry.focal_from_fundamental(F, w, h)
+                source = "self-calibrated (essential-matrix singular values)"
+            if focal_ref is None:
+                focal_ref = geometry.FALLBACK_FOCAL_FACTOR * max(w, h)
+                source = "fallback (1.2 x longest side: self-calibration was not determined)"
+                warnings.append("focal length could not be self-calibrated; using 1.2 x the longest side")
+        refine_focal = source.startswith("self-calibrated") or source.startswith("fallback")
+        focal_other = (
+            float(self.options.focal or other.focal_px)
+            if focal_other_known
+            else focal_ref * max(other.width, other.height) / max(w, h)
+        )
+        K_ref = intrinsics(focal_ref, w, h)
+        K_other = intrinsics(focal_other, other.width, other.height)
+
+        if model == "3d":
+            pose = geometry.essential_pose(inliers, K_ref, K_other, w, h)
+            if pose is None:
+                model = "homography"
+                reason = "essential matrix failed; falling back to the homography model"
+                warnings.append(reason)
+        if model == "3d":
+            R, t, e_inl = pose
+            used = inliers.subset(e_inl)
+            R, t, f_new = geometry.refine_pose(used, R, t, focal_ref, w, h, refine_focal and not focal_other_known)
+            if f_new != focal_ref:
+                focal_other *= f_new / focal_ref
+                focal_ref = f_new
+                K_ref = intrinsics(focal_ref, w, h)
+                K_other = intrinsics(focal_other, other.width, other.height)
+            views = self._views_3d(ref, other, K_ref, K_other, R, t, H, used)
+        else:
+            views = self._views_homography(ref, other, K_ref, K_other, H, inliers)
+        info = {
+            "model": model,
+            "model_reason": reason,
+            "parallax": parallax,
+            "num_matches": len(matches),
+            "num_inliers": int(f_inl.sum()),
+            "matches": matches,
+            "warnings": warnings,
+        }
+        return {"views": views, "info": info, "focal_ref": focal_ref, "focal_source": source}
+
+    # -- depth: homography model ---------------------------------------------------------
+    def _views_homography(self, ref: Photo, other: Photo, K_a, K_b, H, inliers: Matches):
+        R, t, n = geometry.plane_from_homography(H, K_a, K_b, inliers.pts_a)
+        if np.linalg.norm(t) < ROTATION_TRANSLATION:
+            R = _nearest_rotation(np.linalg.inv(K_b) @ H @ K_a)
+            t = np.zeros(3)
+            depth_a = np.ones((ref.height, ref.width), np.float32)
+            depth_b = np.ones((other.height, other.width), np.float32)
+        else:
+            depth_a = _plane_depth(K_a, n, 1.0, ref.width, ref.height)
+            n_b = R @ n
+            depth_b = _plane_depth(K_b, n_b, 1.0 + float(n @ (R.T @ t)), other.width, other.height)
+        cam_a = Camera.identity(K_a, ref.width, ref.height)
+        cam_b = Camera(K_b, R, t, other.width, other.height)
+        return (
+            View(ref.pixels, cam_a, depth_a, (depth_a > 0).astype(np.float32), ref.name),
+            View(other.pixels, cam_b, depth_b, (depth_b > 0).astype(np.float32), other.name),
+        )
+
+    # -- depth: full 3-D model -----------------------------------------------------------
+    def _views_3d(self, ref: Photo, other: Photo, K_a, K_b, R, t, H, inliers: Matches):
+        img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
+        img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
+        Kw_a, Kw_b = _scaled_K(K_a, s_a), _scaled_K(K_b, s_b)
+        S_a = np.diag([s_a, s_a, 1.0])
+        S_b = np.diag([s_b, s_b, 1.0])
+        H_work = S_b @ H @ np.linalg.inv(S_a)
+        meas_a, meas_b = measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work)
+        pts_a = (inliers.pts_a + 0.5) * s_a - 0.5
+        pts_b = (inliers.pts_b + 0.5) * s_b - 0.5
+        _add_sparse_seeds(meas_a, pts_a, pts_b, Kw_a, Kw_b, R, t)
+        _add_sparse_seeds(meas_b, pts_b, pts_a, Kw_b, Kw_a, R.T, -R.T @ t)
+        views = []
+        for photo, image, meas, K, cam_R, cam_t in (
+            (ref, img_a, meas_a, K_a, np.eye(3), np.zeros(3)),
+            (other, img_b, meas_b, K_b, R, t),
+        ):
+            if not (meas.confidence > 0.05).any():
+                raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
+            idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
+            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.propagation)
+            dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
+            depth = np.where(_depth_edges(dense), 0.0, 1.0 / dense).astype(np.float32)
+            conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
+            views.append(View(photo.pixels, Camera(K, cam_R, cam_t, photo.width, photo.height), depth, conf, photo.name))
+        return tuple(views)
+
+
+def _add_sparse_seeds(meas: DepthMeasurement, pix: np.ndarray, pix_other: np.ndarray, K, K_other, R, t) -> None:
+    """Write triangulated inlier matches into a measurement (they are the most reliable
+    correspondences, and the only ones where flow fails on very large disparities)."""
+    depth, angle = geometry.triangulate_depth(pix, pix_other, K, K_other, R, t)
+    h, w = meas.depth.shape
+    xy = np.rint(pix).astype(int)
+    ok = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    ok &= np.degrees(angle) > 0.25
+    x, y = xy[ok, 0], xy[ok, 1]
+    conf = np.clip(np.degrees(angle[ok]) / 1.0, 0.2, 1.0)
+    replace = conf > meas.confidence[y, x]
+    meas.depth[y[replace], x[replace]] = depth[ok][replace]
+    meas.confidence[y[replace], x[replace]] = conf[replace]
+
+
+def _to_full_resolution(idepth: np.ndarray, conf: np.ndarray, width: int, height: int):
+    if idepth.shape == (height, width):
+        return idepth, conf
+    return (
+        cv2.resize(idepth, (width, height), interpolation=cv2.INTER_LINEAR),
+        cv2.resize(conf, (width, height), interpolation=cv2.INTER_LINEAR),
+    )
+
+
+def _depth_edges(idepth: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose inverse depth jumps by more than DEPTH_EDGE_JUMP to a neighbour."""
+    local_max = cv2.dilate(idepth, np.ones((3, 3), np.uint8))
+    local_min = cv2.erode(idepth, np.ones((3, 3), np.uint8))
+    return (local_max - local_min) > DEPTH_EDGE_JUMP * local_max
+
+
+def _plane_depth(K: np.ndarray, n: np.ndarray, d: float, width: int, height: int) -> np.ndarray:
+    """z-depth ``(H, W)`` of the plane ``n . X = d`` seen by camera ``K`` (0 where behind)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    denom = rays @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = d / denom
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+
+
+def _nearest_rotation(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    return R * np.sign(np.linalg.det(R))
+
+
+def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float:
+    both = (reference > 0) & (other > 0)
+    if both.sum() < 10:
+        return 1.0
+    return float(np.median(reference[both] / other[both]))

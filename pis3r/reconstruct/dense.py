@@ -1,0 +1,123 @@
+"""Dense two-view depth by optical flow + triangulation, with geometric checks.
+
+The second image is pre-warped onto the first with the dominant homography, so the
+flow only has to find the residual parallax (which keeps DIS within its range for
+disparities of hundreds of pixels, in any direction of camera motion: sideways and
+forward alike). Every correspondence is checked forward-backward (occlusions), by
+its epipolar distance and by its triangulation angle; what fails gets confidence 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pis3r.features import to_gray_u8
+from pis3r.reconstruct.geometry import triangulate_depth
+
+
+@dataclass
+class DepthMeasurement:
+    """Measured depth of one view on its working grid: ``depth (h, w)`` (0 = none),
+    ``confidence (h, w)`` in [0, 1]."""
+
+    depth: np.ndarray
+    confidence: np.ndarray
+
+
+def _dis():
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow.setFinestScale(1)
+    flow.setPatchSize(8)
+    flow.setPatchStride(3)
+    flow.setVariationalRefinementIterations(5)
+    return flow
+
+
+def _flow_to_other(gray_a: np.ndarray, gray_b: np.ndarray, H_ab: np.ndarray) -> np.ndarray:
+    """For every pixel x of a, its correspondence in b: ``(h_a, w_a, 2)`` (NaN where b's
+    pre-warp had no pixels)."""
+    h, w = gray_a.shape
+    warped = cv2.warpPerspective(gray_b, H_ab, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    covered = cv2.warpPerspective(
+        np.full(gray_b.shape, 255, np.uint8), H_ab, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    )
+    flow = _dis().calc(gray_a, warped, None)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    moved = np.stack([xs + flow[..., 0], ys + flow[..., 1]], axis=-1)
+    target = cv2.perspectiveTransform(moved.reshape(1, -1, 2).astype(np.float64), H_ab).reshape(h, w, 2)
+    target[covered == 0] = np.nan
+    return target
+
+
+def _texture(gray: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue of the structure tensor, squashed to [0, 1]: 0 on flat areas."""
+    eig = cv2.cornerMinEigenVal(gray, 5, 3)
+    return np.clip(eig / 1e-3, 0.0, 1.0) ** 0.5
+
+
+def measure_pair(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    K_a: np.ndarray,
+    K_b: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    H_ab: np.ndarray,
+) -> tuple[DepthMeasurement, DepthMeasurement]:
+    """Depth of both views where they see each other, on the images' own grids.
+
+    ``image_*``: ``(h, w, 3)`` float32 (already at working resolution, with ``K_*``
+    matching); ``x_b = R x_a + t``; ``H_ab`` maps pixels of a to b (pre-warp).
+    """
+    gray_a, gray_b = to_gray_u8(image_a), to_gray_u8(image_b)
+    to_b = _flow_to_other(gray_a, gray_b, H_ab)
+    to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
+    R_ba, t_ba = R.T, -R.T @ t
+    return (
+        _depth_from_flow(to_b, to_a, K_a, K_b, R, t, gray_a),
+        _depth_from_flow(to_a, to_b, K_b, K_a, R_ba, t_ba, gray_b),
+    )
+
+
+def _depth_from_flow(forward, backward, K_a, K_b, R, t, gray_a) -> DepthMeasurement:
+    h, w = forward.shape[:2]
+    hb, wb = backward.shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix_a = np.stack([xs, ys], axis=-1).reshape(-1, 2)
+    pix_b = forward.reshape(-1, 2)
+    inside = (
+        np.isfinite(pix_b).all(axis=1)
+        & (pix_b[:, 0] >= 0) & (pix_b[:, 0] <= wb - 1)
+        & (pix_b[:, 1] >= 0) & (pix_b[:, 1] <= hb - 1)
+    )
+    back = cv2.remap(
+        backward.astype(np.float32),
+        np.nan_to_num(pix_b[:, 0]).reshape(h, w).astype(np.float32),
+        np.nan_to_num(pix_b[:, 1]).reshape(h, w).astype(np.float32),
+        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan,
+    ).reshape(-1, 2)
+    fb_error = np.linalg.norm(back - pix_a, axis=1)
+    fb_error[~np.isfinite(fb_error)] = np.inf
+
+    depth, angle = triangulate_depth(pix_a, np.nan_to_num(pix_b), K_a, K_b, R, t)
+    X_b = (np.hstack([pix_a, np.ones((len(pix_a), 1))]) @ np.linalg.inv(K_a).T) * depth[:, None] @ R.T + t
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reproj = X_b @ K_b.T
+        reproj = reproj[:, :2] / reproj[:, 2:3]
+    epi_error = np.linalg.norm(reproj - pix_b, axis=1)
+
+    scale = np.hypot(h, w) / np.hypot(1024, 768)
+    ok = inside & (depth > 0) & (X_b[:, 2] > 0) & np.isfinite(epi_error)
+    conf = (
+        np.exp(-((fb_error / (1.0 * scale + 0.5)) ** 2))
+        * np.exp(-((epi_error / (1.5 * scale + 0.5)) ** 2))
+        * np.clip(np.degrees(angle) / 1.0, 0.0, 1.0)
+        * _texture(gray_a).reshape(-1)
+    )
+    conf = np.where(ok, np.nan_to_num(conf), 0.0)
+    depth = np.where(conf > 0.05, depth, 0.0)
+    conf = np.where(depth > 0, conf, 0.0)
+    return DepthMeasurement(depth.reshape(h, w).astype(np.float32), conf.reshape(h, w).astype(np.float32))

@@ -1,0 +1,233 @@
+"""Two-view geometry from matches: focal self-calibration, relative pose, and the
+degeneracy test (one homography explains everything -> rotation/plane model).
+
+All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from pis3r.camera import intrinsics
+from pis3r.features import Matches
+
+# Fallback focal when neither the user, EXIF nor self-calibration gives one:
+# 1.2 x the longest side (about 45 deg horizontal field of view), COLMAP's prior.
+FALLBACK_FOCAL_FACTOR = 1.2
+FOCAL_RANGE = (0.3, 5.0)  # plausible focal / longest side
+
+
+@dataclass
+class TwoViewGeometry:
+    """Relative pose of view b w.r.t. view a: ``x_b = R x_a + t`` (``|t| = 1`` or 0).
+
+    ``model``: ``"3d"`` (essential matrix) or ``"homography"`` (rotation or plane:
+    ``plane_normal``/``plane_distance`` in view a's frame, ``n . X = d``).
+    ``inliers``: bool mask over the matches used.
+    """
+
+    model: str
+    R: np.ndarray
+    t: np.ndarray
+    inliers: np.ndarray
+    H: np.ndarray | None = None
+    plane_normal: np.ndarray | None = None
+    reason: str = ""
+
+
+def _pixel_scale(width: int, height: int) -> float:
+    """Thresholds below are in pixels of a 1024x768 image; this rescales them."""
+    return float(np.hypot(width, height) / np.hypot(1024, 768))
+
+
+def fundamental(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """MAGSAC++ fundamental matrix ``(3, 3)`` (or None) and its inlier mask ``(N,)``."""
+    if len(matches) < 8:
+        return None, np.zeros(len(matches), bool)
+    F, mask = cv2.findFundamentalMat(
+        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 1.0 * _pixel_scale(width, height), 0.9999, 20000
+    )
+    if F is None or F.shape != (3, 3):
+        return None, np.zeros(len(matches), bool)
+    return F, mask.ravel().astype(bool)
+
+
+def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
+    """MAGSAC++ homography a -> b ``(3, 3)`` (or None) and its inlier mask."""
+    if len(matches) < 4:
+        return None, np.zeros(len(matches), bool)
+    H, mask = cv2.findHomography(
+        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 2.0 * _pixel_scale(width, height),
+        maxIters=20000, confidence=0.9999,
+    )
+    if H is None:
+        return None, np.zeros(len(matches), bool)
+    return H, mask.ravel().astype(bool)
+
+
+def focal_from_fundamental(F: np.ndarray, width: int, height: int) -> tuple[float | None, float]:
+    """Shared focal making ``K^T F K`` closest to an essential matrix.
+
+    Scans f over a plausible range and minimises the normalised gap between the two
+    non-zero singular values of E(f) (zero for a true essential matrix). Returns the
+    focal (or None when the minimum lies on the range boundary, i.e. the
+    configuration does not determine f) and the gap at the minimum.
+    """
+    side = max(width, height)
+    candidates = np.geomspace(FOCAL_RANGE[0], FOCAL_RANGE[1], 300) * side
+    gaps = np.array([_essential_gap(F, f, width, height) for f in candidates])
+    best = int(np.argmin(gaps))
+    if best in (0, len(candidates) - 1):
+        return None, float(gaps[best])
+    # Flat valleys (e.g. optical axes meeting in one point) leave f undetermined.
+    if gaps[best] > 0.5 * min(gaps[0], gaps[-1]):
+        return None, float(gaps[best])
+    lo, hi = candidates[best - 1], candidates[best + 1]
+    for _ in range(30):
+        m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+        if _essential_gap(F, m1, width, height) < _essential_gap(F, m2, width, height):
+            hi = m2
+        else:
+            lo = m1
+    f = 0.5 * (lo + hi)
+    return f, _essential_gap(F, f, width, height)
+
+
+def _essential_gap(F: np.ndarray, f: float, width: int, height: int) -> float:
+    K = intrinsics(f, width, height)
+    s = np.linalg.svd(K.T @ F @ K, compute_uv=False)
+    return float((s[0] - s[1]) / (s[0] + 1e-12))
+
+
+def focal_from_homography(H: np.ndarray, width: int, height: int) -> float | None:
+    """Focal of a camera rotating about its centre, from the induced homography."""
+    c = np.array([[1, 0, -(width - 1) / 2], [0, 1, -(height - 1) / 2], [0, 0, 1.0]])
+    Hc = c @ H @ np.linalg.inv(c)
+    f0, f1, ok0, ok1 = cv2.detail.focalsFromHomography(Hc / Hc[2, 2])
+    found = [f for f, ok in ((f0, ok0), (f1, ok1)) if ok and np.isfinite(f) and f > 0]
+    if not found:
+        return None
+    f = float(np.sqrt(np.prod(found))) if len(found) == 2 else float(found[0])
+    side = max(width, height)
+    return f if FOCAL_RANGE[0] * side < f < FOCAL_RANGE[1] * side else None
+
+
+def _normalised(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    return cv2.undistortPoints(pts.reshape(-1, 1, 2), K, None).reshape(-1, 2)
+
+
+def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: int, height: int):
+    """Relative pose from the essential matrix (MAGSAC on normalised points + cheirality).
+
+    Returns ``(R, t, inliers)`` or ``None``.
+    """
+    na, nb = _normalised(K_a, matches.pts_a), _normalised(K_b, matches.pts_b)
+    threshold = 1.0 * _pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.9999, threshold, 20000)
+    if E is None or E.shape != (3, 3):
+        return None
+    inliers = mask.ravel().astype(bool)
+    _, R, t, pose_mask = cv2.recoverPose(E, na[inliers], nb[inliers], np.eye(3))
+    good = np.zeros(len(matches), bool)
+    good[np.flatnonzero(inliers)[pose_mask.ravel() > 0]] = True
+    if good.sum() < 8:
+        return None
+    return R, t.ravel() / np.linalg.norm(t), good
+
+
+def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ha = np.hstack([a, np.ones((len(a), 1))])
+    hb = np.hstack([b, np.ones((len(b), 1))])
+    Fa = ha @ F.T
+    Ftb = hb @ F
+    num = np.sum(hb * Fa, axis=1)
+    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2) + 1e-12
+    return num / den
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+
+
+def refine_pose(
+    matches: Matches, R: np.ndarray, t: np.ndarray, focal: float, width: int, height: int, refine_focal: bool
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Minimise the robust Sampson error of all inliers over rotation, translation
+    direction and (optionally) the shared focal. Returns ``(R, t, focal)``."""
+    side = max(width, height)
+
+    def unpack(p):
+        f = focal * np.exp(p[5]) if refine_focal else focal
+        Rm = Rotation.from_rotvec(p[:3]).as_matrix() @ R
+        theta, phi = p[3], p[4]
+        tv = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+        return Rm, tv, f
+
+    t = t / np.linalg.norm(t)
+    p0 = np.zeros(6 if refine_focal else 5)
+    p0[3] = np.arccos(np.clip(t[2], -1, 1))
+    p0[4] = np.arctan2(t[1], t[0])
+
+    def residuals(p):
+        Rm, tv, f = unpack(p)
+        K = intrinsics(f, width, height)
+        Kinv = np.linalg.inv(K)
+        F = Kinv.T @ _skew(tv) @ Rm @ Kinv
+        return _sampson(F, matches.pts_a, matches.pts_b)
+
+    scale = 1.0 * _pixel_scale(width, height)
+    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=scale, max_nfev=200)
+    Rm, tv, f = unpack(fit.x)
+    if not (FOCAL_RANGE[0] * side < f < FOCAL_RANGE[1] * side):
+        return R, t, focal
+    return Rm, tv, f
+
+
+def plane_from_homography(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a: np.ndarray):
+    """Decompose ``H`` (a -> b) as ``K_b (R + t n^T) K_a^-1`` (plane ``n . X = 1`` in a).
+
+    Picks the physically valid solution (the matched points in front of both
+    cameras). Returns ``(R, t, n)``; ``t`` is scaled by the plane distance.
+    """
+    Hn = np.linalg.inv(K_b) @ H @ K_a
+    # cv2.decomposeHomographyMat wants one shared K; work in normalised coordinates.
+    count, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    rays = np.hstack([_normalised(K_a, pts_a), np.ones((len(pts_a), 1))])
+    best, best_score = None, -1.0
+    for R, t, n in zip(Rs, ts, ns):
+        n = n.ravel()
+        t = t.ravel()
+        depth_a = 1.0 / (rays @ n)  # points on the plane n . X = 1
+        X_b = (rays * depth_a[:, None]) @ R.T + t
+        score = float(np.mean((depth_a > 0) & (X_b[:, 2] > 0)))
+        if score > best_score + 1e-9:
+            best, best_score = (R, t, n), score
+    return best
+
+
+def triangulate_depth(
+    pix_a: np.ndarray, pix_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth along the rays of camera a of correspondences ``(N, 2)`` a <-> b.
+
+    Linear closed form: the point ``s * r_a`` whose projection in b best matches
+    ``pix_b`` (``x_b = R x_a + t``). Returns ``(depth_a (N,), angle (N,) radians)``
+    where ``angle`` is the triangulation angle (small = unreliable).
+    """
+    ones = np.ones((len(pix_a), 1))
+    r_a = np.hstack([pix_a, ones]) @ np.linalg.inv(K_a).T
+    x_b = np.hstack([pix_b, ones])
+    a = np.cross(x_b, (r_a @ R.T) @ K_b.T)
+    b = np.cross(x_b, np.broadcast_to(K_b @ t, x_b.shape))
+    depth = -np.sum(a * b, axis=1) / (np.sum(a * a, axis=1) + 1e-18)
+    X_a = r_a * depth[:, None]
+    centre_b = -R.T @ t
+    v_a = X_a
+    v_b = X_a - centre_b
+    cos = np.sum(v_a * v_b, axis=1) / (np.linalg.norm(v_a, axis=1) * np.linalg.norm(v_b, axis=1) + 1e-18)
+    return depth, np.arccos(np.clip(cos, -1, 1))

@@ -1,0 +1,152 @@
+"""Reprojection of every view's points into the reference camera with a z-buffer.
+
+Paper eqs. 2–5: points go into the reference camera frame, are projected and
+rounded to the nearest pixel; at each pixel the nearest point wins. The canvas is
+the reference camera with a larger image: its principal point is shifted by
+``ref_offset`` (the canvas pixel of the reference's pixel (0, 0)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from pis3r.camera import Camera
+from pis3r.scene import Scene
+
+# Points closer than this (relative to the median scene depth) are numerically on
+# the camera plane: their projection explodes, so they are dropped.
+MIN_RELATIVE_DEPTH = 1e-3
+
+
+@dataclass
+class Canvas:
+    """The z-buffered reprojection of a scene onto the reference camera.
+
+    ``image``: ``(H, W, 3)`` float32; ``depth``: ``(H, W)`` float32 z in the reference
+    frame (``inf`` where empty); ``source``: ``(H, W)`` int16 index of the view whose
+    point won (``-1`` where empty); ``camera``: the canvas camera; ``ref_offset``:
+    ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
+    ``dropped_points``: points that fell outside the capped canvas.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    source: np.ndarray
+    camera: Camera
+    ref_offset: tuple[int, int]
+    dropped_points: int
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """``(H, W)`` bool: pixels that received a point (or the reference itself)."""
+        return self.source >= 0
+
+
+def _scene_points(scene: Scene, ref: Camera, device: torch.device, min_confidence: float):
+    """Stack every view's valid points: reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``."""
+    xyz, rgb, owner = [], [], []
+    for index, view in enumerate(scene.views):
+        keep = view.valid & (view.confidence >= min_confidence)
+        if not keep.any():
+            continue
+        world = view.world_points()[keep]
+        xyz.append(torch.from_numpy(ref.world_to_camera(world).astype(np.float32)))
+        rgb.append(torch.from_numpy(view.image[keep]))
+        owner.append(torch.full((int(keep.sum()),), index, dtype=torch.int16))
+    if not xyz:
+        empty = torch.zeros((0, 3), device=device)
+        return empty, empty, torch.zeros((0,), dtype=torch.int16, device=device)
+    return torch.cat(xyz).to(device), torch.cat(rgb).to(device), torch.cat(owner).to(device)
+
+
+def _window(coords: torch.Tensor, ref_size: int, limit: int) -> tuple[int, int]:
+    """Choose ``[lo, hi)`` along one axis: covers ``[0, ref_size)`` and as many
+    projected coordinates as possible within ``limit`` pixels."""
+    if coords.numel() == 0:
+        return 0, ref_size
+    lo = int(min(0, torch.floor(coords.min()).item()))
+    hi = int(max(ref_size, torch.ceil(coords.max()).item() + 1))
+    if hi - lo <= limit:
+        return lo, hi
+    # Slide a window of `limit` pixels that always contains the reference and
+    # keep the start that holds the most points (a 1-D histogram prefix sum).
+    hist = torch.bincount((coords.round().long() - lo).clamp(0, hi - lo - 1), minlength=hi - lo)
+    prefix = torch.cat([hist.new_zeros(1), torch.cumsum(hist, 0)]).cpu().numpy()
+    starts = np.arange(max(lo, ref_size - limit), 1)
+    counts = prefix[np.minimum(starts - lo + limit, hi - lo)] - prefix[starts - lo]
+    start = int(starts[int(np.argmax(counts))])
+    return start, start + limit
+
+
+def reproject_to_canvas(
+    scene: Scene,
+    ref_index: int = 0,
+    max_canvas_scale: float = 3.0,
+    device: str | torch.device = "cpu",
+    min_confidence: float = 0.0,
+) -> Canvas:
+    """Z-buffer all points of ``scene`` into camera ``ref_index`` on a canvas that grows
+    to hold them (capped at ``max_canvas_scale`` times the reference's size).
+
+    The reference's own pixels are copied verbatim into the canvas.
+    """
+    device = torch.device(device)
+    ref_view = scene.views[ref_index]
+    ref = ref_view.camera
+    xyz, rgb, owner = _scene_points(scene, ref, device, min_confidence)
+
+    z = xyz[:, 2]
+    positive = z[z > 0]
+    min_z = MIN_RELATIVE_DEPTH * float(positive.median()) if positive.numel() else 0.0
+    front = z > max(min_z, 1e-9)
+    xyz, rgb, owner, z = xyz[front], rgb[front], owner[front], z[front]
+    K = torch.as_tensor(ref.K, dtype=torch.float32, device=device)
+    u = K[0, 0] * xyz[:, 0] / z + K[0, 2]
+    v = K[1, 1] * xyz[:, 1] / z + K[1, 2]
+
+    x0, x1 = _window(u, ref.width, int(round(max_canvas_scale * ref.width)))
+    y0, y1 = _window(v, ref.height, int(round(max_canvas_scale * ref.height)))
+    width, height = x1 - x0, y1 - y0
+    px = torch.round(u).long() - x0
+    py = torch.round(v).long() - y0
+    inside = (px >= 0) & (px < width) & (py >= 0) & (py < height)
+    dropped = int((~inside).sum())
+    px, py, z, rgb, owner = px[inside], py[inside], z[inside], rgb[inside], owner[inside]
+
+    flat = py * width + px
+    zbuf = torch.full((height * width,), float("inf"), device=device)
+    zbuf.scatter_reduce_(0, flat, z, reduce="amin")
+    # Ties at equal depth are broken by the highest point index, so the result
+    # does not depend on scatter order.
+    is_nearest = z == zbuf[flat]
+    winner = torch.full((height * width,), -1, dtype=torch.long, device=device)
+    candidates = torch.arange(z.numel(), device=device)
+    winner.scatter_reduce_(0, flat[is_nearest], candidates[is_nearest], reduce="amax")
+
+    filled = winner >= 0
+    image = torch.zeros((height * width, 3), device=device)
+    source = torch.full((height * width,), -1, dtype=torch.int16, device=device)
+    image[filled] = rgb[winner[filled]]
+    source[filled] = owner[winner[filled]]
+
+    image = image.reshape(height, width, 3).cpu().numpy()
+    depth = zbuf.reshape(height, width).cpu().numpy()
+    source = source.reshape(height, width).cpu().numpy()
+
+    ox, oy = -x0, -y0
+    window = (slice(oy, oy + ref.height), slice(ox, ox + ref.width))
+    image[window] = ref_view.image
+    source[window] = ref_index
+    ref_depth = np.where(ref_view.valid, ref_view.depth, np.inf).astype(np.float32)
+    depth[window] = ref_depth
+    return Canvas(
+        image=image,
+        depth=depth,
+        source=source,
+        camera=ref.shifted(ox, oy, width, height),
+        ref_offset=(ox, oy),
+        dropped_points=dropped,
+    )

@@ -1,0 +1,203 @@
+"""Headless OpenGL rendering (moderngl + EGL, Mesa on the CPU) of exact OpenCV pinhole cameras.
+
+The projection is built from ``K`` so that a world point lands exactly on the pixel
+``K x_cam / z`` predicts: OpenCV pixel ``u`` is OpenGL window coordinate ``u + 0.5``
+(GL samples pixel centres at half-integers), and image row ``v`` is GL window row
+``v`` (not flipped: ``glReadPixels`` returns the bottom GL row first, which is then
+image row 0). Depth is the camera-frame ``z`` written to a float32 colour attachment,
+exact per pixel centre, ``inf`` where no surface is hit.
+
+Colour is supersampled (render ``s`` times larger, average ``s x s`` blocks, the same
+as integrating each pixel's footprint); textures are mipmapped with 16x anisotropic
+filtering, so images look like photographs rather than aliased renders. One GL
+context per process; the last scene's geometry and textures stay uploaded.
+"""
+
+from __future__ import annotations
+
+import functools
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from pis3r.camera import Camera
+from pis3r.errors import Pis3rError
+from pis3r.synth.scenes import Scene
+
+NEAR, FAR = 0.05, 5000.0  # metres; the backdrop is at most ~400 m from any camera
+
+_VERTEX_SHADER = """
+#version 330
+uniform mat4 clip_from_world;
+in vec3 in_position;
+in vec2 in_uv;
+in float in_layer;
+in vec3 in_color;
+out vec2 v_uv;
+flat out float v_layer;
+out vec3 v_color;
+out float v_z;
+void main() {
+    gl_Position = clip_from_world * vec4(in_position, 1.0);
+    v_z = gl_Position.w;  // w_clip is the camera-frame z by construction of the projection
+    v_uv = in_uv;
+    v_layer = in_layer;
+    v_color = in_color;
+}
+"""
+
+_FRAGMENT_SHADER = """
+#version 330
+uniform sampler2DArray textures;
+in vec2 v_uv;
+flat in float v_layer;
+in vec3 v_color;
+in float v_z;
+layout(location = 0) out vec4 out_color;
+layout(location = 1) out float out_depth;
+void main() {
+    // Mirrored repeat (no seams between copies of a photo); the gradients of the
+    // unfolded coordinates keep mip level and anisotropy right across the folds.
+    vec2 folded = 1.0 - abs(1.0 - mod(v_uv, 2.0));
+    vec3 texel = textureGrad(textures, vec3(folded, v_layer), dFdx(v_uv), dFdy(v_uv)).rgb;
+    out_color = vec4(clamp(texel * v_color, 0.0, 1.0), 1.0);
+    out_depth = v_z;
+}
+"""
+
+
+@dataclass(frozen=True)
+class Rendering:
+    """``image (H, W, 3)`` float32 RGB in [0, 1]; ``depth (H, W)`` float32 camera-frame z,
+    ``inf`` where nothing was hit."""
+
+    image: np.ndarray
+    depth: np.ndarray
+
+
+def gl_projection(camera: Camera, near: float = NEAR, far: float = FAR) -> np.ndarray:
+    """``(4, 4)`` matrix taking camera-frame points (OpenCV axes) to GL clip space such that
+    window ``x = u + 0.5``, window ``y = v + 0.5`` for ``(u, v) = K x / z``, and ``w = z``."""
+    K, w, h = camera.K, camera.width, camera.height
+    return np.array(
+        [
+            [2 * K[0, 0] / w, 2 * K[0, 1] / w, 2 * (K[0, 2] + 0.5) / w - 1, 0],
+            [0, 2 * K[1, 1] / h, 2 * (K[1, 2] + 0.5) / h - 1, 0],
+            [0, 0, (far + near) / (far - near), -2 * far * near / (far - near)],
+            [0, 0, 1, 0],
+        ]
+    )
+
+
+def clip_from_world(camera: Camera) -> np.ndarray:
+    """``(4, 4)`` world-to-clip matrix ``P [R | t]`` of ``camera``."""
+    extrinsics = np.eye(4)
+    extrinsics[:3, :3], extrinsics[:3, 3] = camera.R, camera.t
+    return gl_projection(camera) @ extrinsics
+
+
+@functools.lru_cache(maxsize=1)
+def gl_context():
+    """The process-wide headless GL context (EGL)."""
+    import moderngl
+
+    try:
+        ctx = moderngl.create_context(standalone=True, backend="egl")
+    except Exception as exc:  # moderngl raises bare Exceptions for a missing EGL/driver
+        raise Pis3rError(
+            f"cannot create a headless OpenGL context (moderngl + EGL): {exc}; "
+            "install Mesa's EGL (Debian/Ubuntu: libegl1 libgl1-mesa-dri)"
+        ) from None
+    ctx.enable(moderngl.DEPTH_TEST)
+    return ctx
+
+
+class _Uploaded:
+    """A scene's vertex buffer and texture array on the GL context."""
+
+    def __init__(self, scene: Scene) -> None:
+        import moderngl
+
+        ctx = gl_context()
+        self.program = ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        mesh = scene.mesh
+        per_vertex = np.repeat(np.arange(mesh.triangles), 3)
+        vertices = np.hstack(
+            [mesh.positions, mesh.uv, mesh.texture_id[per_vertex, None].astype(np.float32), mesh.color[per_vertex]]
+        ).astype(np.float32)
+        self.buffer = ctx.buffer(np.ascontiguousarray(vertices).tobytes())
+        self.vao = ctx.vertex_array(
+            self.program, [(self.buffer, "3f 2f 1f 3f", "in_position", "in_uv", "in_layer", "in_color")]
+        )
+        layers, size = scene.textures.shape[0], scene.textures.shape[1]
+        self.textures = ctx.texture_array((size, size, layers), 3, np.ascontiguousarray(scene.textures).tobytes())
+        self.textures.build_mipmaps()
+        self.textures.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+        self.textures.anisotropy = 16.0
+        self.textures.repeat_x = self.textures.repeat_y = False  # the shader mirrors
+
+    def release(self) -> None:
+        for resource in (self.vao, self.buffer, self.textures, self.program):
+            resource.release()
+
+
+_current: dict[str, object] = {"scene": None, "uploaded": None}
+_targets: dict[tuple[int, int], object] = {}
+
+
+def _uploaded(scene: Scene) -> _Uploaded:
+    """The GL resources of ``scene``, uploading it (and dropping the previous one) if needed."""
+    ref = _current["scene"]
+    if ref is None or ref() is not scene:
+        if _current["uploaded"] is not None:
+            _current["uploaded"].release()
+        _current["uploaded"] = _Uploaded(scene)
+        _current["scene"] = weakref.ref(scene)
+    return _current["uploaded"]
+
+
+def _target(width: int, height: int):
+    """A framebuffer (float RGBA colour, float z, depth buffer) of this size, kept for reuse."""
+    if (width, height) not in _targets:
+        if len(_targets) >= 8:  # sizes come in a handful per dataset; do not hoard memory
+            for fbo in _targets.values():
+                fbo.release()
+            _targets.clear()
+        ctx = gl_context()
+        colour = ctx.texture((width, height), 4, dtype="f4")
+        depth = ctx.texture((width, height), 1, dtype="f4")
+        _targets[(width, height)] = ctx.framebuffer([colour, depth], ctx.depth_renderbuffer((width, height)))
+    return _targets[(width, height)]
+
+
+def render_exact(scene: Scene, camera: Camera) -> Rendering:
+    """One sample per pixel, at its centre: colour and z exactly at ``camera``'s pixels."""
+    uploaded = _uploaded(scene)
+    fbo = _target(camera.width, camera.height)
+    fbo.use()
+    fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+    uploaded.program["clip_from_world"].write(clip_from_world(camera).T.astype(np.float32).tobytes())
+    uploaded.textures.use(0)
+    uploaded.program["textures"].value = 0
+    uploaded.vao.render()
+    shape = (camera.height, camera.width)
+    image = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32).reshape(*shape, 4)
+    depth = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32).reshape(shape)
+    return Rendering(np.ascontiguousarray(image[..., :3]), np.where(depth > 0, depth, np.inf).astype(np.float32))
+
+
+def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Mean over ``factor x factor`` blocks: ``(H*f, W*f, C)`` to ``(H, W, C)``."""
+    h, w = image.shape[0] // factor, image.shape[1] // factor
+    return image.reshape(h, factor, w, factor, -1).mean(axis=(1, 3), dtype=np.float32)
+
+
+def render(scene: Scene, camera: Camera, supersample: int = 2) -> Rendering:
+    """Photo-like colour (``supersample**2`` samples per pixel, box-filtered) and exact
+    per-pixel-centre z of ``scene`` seen by ``camera``."""
+    exact = render_exact(scene, camera)
+    if supersample == 1:
+        return exact
+    fine = render_exact(scene, camera.scaled(supersample))
+    return Rendering(area_downsample(fine.image, supersample), exact.depth)

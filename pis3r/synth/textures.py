@@ -1,0 +1,160 @@
+"""Textures for synthetic scenes: real photographs plus procedural patterns.
+
+Every texture is a square ``(S, S, 3)`` uint8 image. Photos come from the images
+scikit-image ships inside its wheel (no network) and from any folder the user
+names; procedural ones (noise, checker, bricks, sky, near-flat paint) are drawn
+from a random generator so each scene gets its own.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pis3r.errors import InputError
+from pis3r.io import read_image, to_uint8
+
+TEXTURE_SIZE = 512
+
+# Photos bundled in scikit-image's wheel (skimage/data/*); the others in skimage.data
+# (brain, kidney, eagle, ...) are fetched over the network and must not be used.
+SKIMAGE_PHOTOS = (
+    "astronaut", "camera", "chelsea", "coffee", "rocket", "coins", "moon", "page",
+    "hubble_deep_field", "immunohistochemistry", "colorwheel",
+)
+# Grey material photos: tinted per surface so one photo gives many materials.
+SKIMAGE_MATERIALS = ("brick", "grass", "gravel")
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+
+
+@dataclass(frozen=True)
+class Texture:
+    """One texture layer: ``pixels (S, S, 3)`` uint8; ``kind`` is ``photo`` (real,
+    colour or grey), ``material`` (grey real surface to tint), ``pattern``
+    (procedural, textured), ``flat`` (almost uniform: low texture) or ``sky``."""
+
+    name: str
+    pixels: np.ndarray
+    kind: str
+
+
+def square(image: np.ndarray, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """Centre square crop of ``(H, W[, C])`` resized (area filter) to ``(size, size, 3)`` uint8."""
+    rgb = to_uint8(image) if image.dtype != np.uint8 else image
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    rgb = rgb[..., :3]
+    h, w = rgb.shape[:2]
+    side = min(h, w)
+    y0, x0 = (h - side) // 2, (w - side) // 2
+    crop = np.ascontiguousarray(rgb[y0 : y0 + side, x0 : x0 + side])
+    interpolation = cv2.INTER_AREA if side >= size else cv2.INTER_CUBIC
+    return cv2.resize(crop, (size, size), interpolation=interpolation)
+
+
+@functools.lru_cache(maxsize=1)
+def skimage_textures() -> tuple[Texture, ...]:
+    """The bundled scikit-image photos and materials as textures (loaded once)."""
+    import skimage.data
+
+    def load(name: str) -> np.ndarray:
+        image = getattr(skimage.data, name)()
+        return image.astype(np.uint8) * 255 if image.dtype == bool else image
+
+    photos = [Texture(n, square(load(n)), "photo") for n in SKIMAGE_PHOTOS]
+    materials = [Texture(n, square(load(n)), "material") for n in SKIMAGE_MATERIALS]
+    return tuple(photos + materials)
+
+
+def folder_textures(folder: str | Path) -> tuple[Texture, ...]:
+    """Every readable image in ``folder`` (not recursive) as a ``photo`` texture, sorted by name.
+
+    Raises :class:`InputError` when the folder is missing or holds no readable image.
+    """
+    path = Path(folder)
+    if not path.is_dir():
+        raise InputError(f"--textures {path}: not a directory")
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    textures = []
+    for file in files:
+        try:
+            textures.append(Texture(file.name, square(read_image(file).pixels), "photo"))
+        except InputError:
+            continue  # one broken file in a texture folder should not stop a dataset
+    if not textures:
+        raise InputError(f"--textures {path}: no readable images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    return tuple(textures)
+
+
+def periodic_noise(rng: np.random.Generator, size: int, slope: float = 1.5, lowest: float = 2.0) -> np.ndarray:
+    """Tileable fractal noise ``(size, size)`` float in [0, 1], made in the Fourier domain:
+    random complex coefficients with amplitude ``f**-slope`` for ``f >= lowest`` cycles per
+    texture (larger ``slope``: smoother; larger ``lowest``: smaller blobs)."""
+    fy = np.fft.fftfreq(size)[:, None] * size
+    fx = np.fft.rfftfreq(size)[None, :] * size
+    freq = np.hypot(fx, fy)
+    amplitude = np.where(freq >= lowest, np.maximum(freq, 1.0) ** -slope, 0.0)
+    coefficients = rng.standard_normal(freq.shape) + 1j * rng.standard_normal(freq.shape)
+    noise = np.fft.irfft2(amplitude * coefficients, s=(size, size))
+    noise -= noise.min()
+    return noise / max(noise.max(), 1e-12)
+
+
+def _mix(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Blend colours ``a, b (3,)`` by ``weight (S, S)`` into ``(S, S, 3)``."""
+    return a * (1.0 - weight[..., None]) + b * weight[..., None]
+
+
+def noise_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """Two random colours blended by fractal noise (a stucco / terrain look)."""
+    a, b = rng.random(3), rng.random(3)
+    return to_uint8(_mix(a, b, periodic_noise(rng, size)))
+
+
+def checker_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """A checkerboard of 4..16 squares per side in two colours, with faint grain."""
+    cells = int(rng.choice([4, 8, 16]))
+    idx = np.arange(size) * cells // size
+    board = ((idx[:, None] + idx[None, :]) % 2).astype(float)
+    grain = 0.08 * (periodic_noise(rng, size, slope=0.5, lowest=32) - 0.5)
+    return to_uint8(_mix(rng.random(3), rng.random(3), board) + grain[..., None])
+
+
+def bricks_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """Running-bond bricks with light mortar, per-brick colour jitter and noise."""
+    rows = int(rng.integers(6, 14))
+    cols = max(2, rows // 2)
+    brick_h, brick_w = size / rows, size / cols
+    y, x = np.mgrid[0:size, 0:size].astype(float)
+    row = np.floor(y / brick_h).astype(int)
+    shifted = x + (row % 2) * brick_w / 2.0
+    col = np.floor(shifted / brick_w).astype(int) % cols
+    mortar_px = max(2.0, 0.08 * brick_h)
+    mortar = (y - row * brick_h < mortar_px) | (shifted % brick_w < mortar_px)
+    base = np.array([0.55, 0.25, 0.18]) * rng.uniform(0.6, 1.3, 3)
+    jitter = rng.uniform(0.8, 1.2, (rows, cols))[row, col]
+    grain = periodic_noise(rng, size, slope=1.0, lowest=8)
+    image = base * jitter[..., None] * (0.75 + 0.5 * grain[..., None])
+    image[mortar] = rng.uniform(0.6, 0.85) * (0.85 + 0.3 * grain[mortar, None])
+    return to_uint8(image)
+
+
+def flat_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """Almost uniform paint (a low-texture surface): one colour, +-2 grey levels of noise."""
+    colour = rng.uniform(0.2, 0.9, 3)
+    return to_uint8(colour + (4.0 / 255.0) * (periodic_noise(rng, size) - 0.5)[..., None])
+
+
+def sky_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """Blue sky with soft clouds: smooth, little texture (as a real sky)."""
+    blue = np.array([0.35, 0.55, 0.9]) * rng.uniform(0.8, 1.1)
+    clouds = np.clip((periodic_noise(rng, size, slope=2.0, lowest=1) - 0.5) * 2.5, 0.0, 1.0)
+    return to_uint8(_mix(blue, np.array([0.95, 0.95, 0.97]), clouds))
+
+
+PATTERNS = (noise_texture, checker_texture, bricks_texture)
