@@ -23,7 +23,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	$(PIP) install -q numba matplotlib
 	mkdir -p $(DATA) $(VENV)/cache
 	test -f $(DATA)/niqe_pris_params.npz || ( \
-	  $(PIP) download -q --no-deps --no-binary :all: basicsr==1.4.2 -d $(VENV)/cache && \
+	  $(PIP) download -q --no-deps --no-build-isolation --no-binary :all: basicsr==1.4.2 -d $(VENV)/cache && \
 	  tar -xzf $(VENV)/cache/basicsr-1.4.2.tar.gz -C $(VENV)/cache basicsr-1.4.2/basicsr/metrics/niqe_pris_params.npz && \
 	  cp $(VENV)/cache/basicsr-1.4.2/basicsr/metrics/niqe_pris_params.npz $(DATA)/ )
 	touch $@

@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/eval_crop.py [--data ../shared/data/real] [--crop 0.6] [--only NAME ...]
 
-For each pair folder (``ref.*``, ``tgt.*``): reference = centre crop of ``ref``, target =
+For each pair folder (``ref.*``, ``tgt.*``; with ``--calibrated`` also the view pairs of
+the calibrated scenes): reference = centre crop of ``ref``, target =
 ``tgt``, GT = ``ref``; pis3r's canvas is placed on the GT grid with its own ``ref_offset``
 (no registration). Prints one row per pair and the means per parallax class (from the
 folder's SOURCES.md). A pis3r failure is scored as an empty extension.
@@ -16,13 +17,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 
 from pis3r.eval.baselines import MethodFailure, run_method
-from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, load_pair_cases, score_exact, score_failure
+from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case, score_exact, score_failure
 
 COLUMNS = ("coverage", "fill_psnr", "fill_ssim", "fill_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
 HEADER = ("cov", "fPSNR", "fSSIM", "fLPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
@@ -35,23 +37,25 @@ def main() -> None:
     parser.add_argument("--crop", type=float, default=0.6)
     parser.add_argument("--only", nargs="*", default=None, help="pair folder names to run (default: all)")
     parser.add_argument("--timeout", type=float, default=600.0)
+    parser.add_argument("--calibrated", action="store_true", help="also the view pairs of the calibrated scenes")
     args = parser.parse_args()
 
-    cases = [c for c in load_pair_cases(args.data, args.crop) if not args.only or c.name in args.only]
-    print(f"{'pair':28s} {'class':9s} " + " ".join(f"{h:>7s}" for h in HEADER))
+    specs = [s for s in discover_cases(args.data) if args.calibrated or s.kind == "pair"]
+    cases = (load_case(s, args.crop) for s in specs if not args.only or s.name in args.only)
+    print(f"{'pair':34s} {'class':9s} " + " ".join(f"{h:>7s}" for h in HEADER))
     rows = []
     started = time.perf_counter()
     for case in cases:
         try:
-            output = run_method("pis3r", case.reference, case.target, args.timeout)
-            row = {**score_exact(output.image, output.ref_offset, case, filled=output.filled),
-                   "seconds": output.seconds}
+            output = run_method("pis3r", case.reference, case.target, args.timeout, threads=os.cpu_count())
+            canvas = output.canvas
+            row = {**score_exact(canvas.image, canvas.offset, case, filled=canvas.filled), "seconds": output.seconds}
             note = ""
         except MethodFailure as exc:
             row = {**score_failure(case), "seconds": math.nan}
             note = f"  FAILED: {exc}"
         rows.append((case.parallax_class, row))
-        print(f"{case.name:28s} {case.parallax_class:9s} " + " ".join(_fmt(row[k]) for k in COLUMNS) + note,
+        print(f"{case.name:34s} {case.parallax_class:9s} " + " ".join(_fmt(row[k]) for k in COLUMNS) + note,
               flush=True)
 
     print()
@@ -59,7 +63,7 @@ def main() -> None:
         group = [row for c, row in rows if cls in ("all", c)]
         if group:
             means = {k: _mean([row[k] for row in group]) for k in COLUMNS}
-            print(f"{'mean ' + cls + f' ({len(group)})':28s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
+            print(f"{'mean ' + cls + f' ({len(group)})':34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
     print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
 
 

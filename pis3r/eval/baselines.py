@@ -1,8 +1,8 @@
 """The stitchers under evaluation, each behind one contract and run in its own process.
 
-Every method is a function ``(reference, target) -> MethodOutput`` on ``(H, W, 3)`` float32
-RGB images. :func:`run_method` runs one in a fresh Python process with a time limit, so a
-crash (even a segfault in native code), a hang or a refusal of a peer becomes a
+Every method is a function ``(reference, target, geometry) -> MethodOutput`` on
+``(H, W, 3)`` float32 RGB images. :func:`run_method` runs one in a child process with a time
+limit, so a crash (even a segfault in native code), a hang or a refusal of a peer becomes a
 :class:`MethodFailure` — a registration failure in the tables, as in the paper — and never
 takes the evaluation down.
 
@@ -13,7 +13,8 @@ Methods: ``pis3r`` (classical backend), ``opencv`` (``cv2.Stitcher`` PANORAMA),
 
 from __future__ import annotations
 
-import os
+import functools
+import multiprocessing
 import subprocess
 import sys
 import tempfile
@@ -35,54 +36,68 @@ class MethodFailure(Pis3rError):
 
 
 @dataclass(frozen=True)
-class MethodOutput:
-    """One method's stitched canvas.
-
-    ``image`` ``(h, w, 3)`` float32 RGB in [0, 1]; ``filled`` ``(h, w)`` bool (pixels the
-    method produced); ``ref_offset`` ``(x, y)``: canvas pixel of the reference's pixel
-    (0, 0) when the method knows it exactly (else ``None``); ``seconds``: wall time of the
-    method itself.
-    """
+class Canvas:
+    """A stitched canvas: ``image`` ``(h, w, 3)`` float32 RGB in [0, 1]; ``filled`` ``(h, w)``
+    bool (pixels the method produced); ``offset`` ``(x, y)``: canvas pixel of the pixel
+    (0, 0) of the camera it is seen from, when the method knows it exactly, else ``None``."""
 
     image: np.ndarray
     filled: np.ndarray
-    ref_offset: tuple[int, int] | None
+    offset: tuple[int, int] | None
+
+
+@dataclass(frozen=True)
+class MethodOutput:
+    """What one method made of a pair: ``canvas`` in the reference's view; with geometry
+    asked for and supported, ``target_canvas`` in the target's view and ``relative_pose``
+    ``(3, 4)`` ``[R | t]`` (reference camera -> target camera) as the method reconstructed
+    it (``None`` otherwise). ``seconds``: wall time of the method itself."""
+
+    canvas: Canvas
     seconds: float
+    target_canvas: Canvas | None = None
+    relative_pose: np.ndarray | None = None
 
 
 def _bgr(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR)
 
 
-def _from_bgr_canvas(canvas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _from_bgr_canvas(canvas: np.ndarray) -> Canvas:
     """OpenCV stitchers paint the background black and export no mask: filled = non-black."""
     image = cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-    return image, canvas.max(axis=2) > 0
+    return Canvas(image, canvas.max(axis=2) > 0, None)
 
 
-def stitch_pis3r(reference: np.ndarray, target: np.ndarray) -> MethodOutput:
-    """pis3r with the weight-free classical backend on CPU."""
+def stitch_pis3r(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
+    """pis3r with the weight-free classical backend on CPU; with ``geometry`` one canvas per
+    camera from one reconstruction (``ref="all"``)."""
     from pis3r.api import stitch
 
     start = time.perf_counter()
-    result = stitch([reference, target], ref=0, backend="classical", device="cpu")
+    result = stitch([reference, target], ref="all" if geometry else 0, backend="classical", device="cpu")
     seconds = time.perf_counter() - start
-    return MethodOutput(result.image, result.mask > 0, tuple(int(v) for v in result.ref_offset), seconds)
+    results = result if geometry else [result]
+    canvases = [Canvas(r.image, r.mask > 0, tuple(int(v) for v in r.ref_offset)) for r in results]
+    if not geometry:
+        return MethodOutput(canvases[0], seconds)
+    camera = results[0].scene.views[1].camera
+    return MethodOutput(canvases[0], seconds, canvases[1], np.hstack([camera.R, camera.t[:, None]]))
 
 
 def _opencv(mode: int):
-    def stitch_opencv(reference: np.ndarray, target: np.ndarray) -> MethodOutput:
+    def stitch_opencv(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
         start = time.perf_counter()
         status, canvas = cv2.Stitcher_create(mode).stitch([_bgr(reference), _bgr(target)])
         seconds = time.perf_counter() - start
         if status != cv2.Stitcher_OK or canvas is None:
             raise MethodFailure(f"cv2.Stitcher refused the pair (status {status})")
-        return MethodOutput(*_from_bgr_canvas(canvas), None, seconds)
+        return MethodOutput(_from_bgr_canvas(canvas), seconds)
 
     return stitch_opencv
 
 
-def stitch_stitching(reference: np.ndarray, target: np.ndarray) -> MethodOutput:
+def stitch_stitching(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
     """The ``stitching`` package with the canvas left uncropped (its default crops to the
     largest interior rectangle, which throws the extension away) and SIFT features."""
     from stitching import Stitcher
@@ -93,15 +108,17 @@ def stitch_stitching(reference: np.ndarray, target: np.ndarray) -> MethodOutput:
         canvas = Stitcher(detector="sift", crop=False).stitch([_bgr(reference), _bgr(target)])
     except StitchingError as exc:
         raise MethodFailure(f"stitching refused the pair: {exc}") from None
-    return MethodOutput(*_from_bgr_canvas(canvas), None, time.perf_counter() - start)
+    return MethodOutput(_from_bgr_canvas(canvas), time.perf_counter() - start)
 
 
-def stitch_apap(reference: np.ndarray, target: np.ndarray) -> MethodOutput:
+def stitch_apap(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
+    """APAP onto the reference's frame; with ``geometry`` also onto the target's."""
     from pis3r.eval.apap import apap_stitch
 
     start = time.perf_counter()
-    result = apap_stitch(reference, target)
-    return MethodOutput(result.image, result.filled, result.ref_offset, time.perf_counter() - start)
+    views = [apap_stitch(reference, target)] + ([apap_stitch(target, reference)] if geometry else [])
+    canvases = [Canvas(v.image, v.filled, v.ref_offset) for v in views]
+    return MethodOutput(canvases[0], time.perf_counter() - start, canvases[1] if geometry else None)
 
 
 METHODS = {
@@ -111,49 +128,106 @@ METHODS = {
     "stitching": stitch_stitching,
     "apap": stitch_apap,
 }
+# Methods whose canvases are perspective images of a known camera, so geometry applies.
+GEOMETRY_METHODS = ("pis3r", "apap")
 
 
-def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: float = DEFAULT_TIMEOUT_S) -> MethodOutput:
-    """Run method ``name`` on ``(H, W, 3)`` images in a child process with a ``timeout`` (s).
+def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: float = DEFAULT_TIMEOUT_S,
+               threads: int = 1, geometry: bool = False) -> MethodOutput:
+    """Run method ``name`` on ``(H, W, 3)`` images in a child process with a ``timeout`` (s),
+    using at most ``threads`` CPU threads (OpenCV and torch). ``geometry``: also ask for the
+    target-view canvas and relative pose (methods in ``GEOMETRY_METHODS``).
 
     Raises :class:`MethodFailure` for a crash, timeout or refusal."""
     if name not in METHODS:
         raise MethodFailure(f"unknown method {name!r}; choose from {', '.join(METHODS)}")
     with tempfile.TemporaryDirectory(prefix="pis3r-eval-") as tmp:
-        inputs, output = Path(tmp) / "inputs.npz", Path(tmp) / "output.npz"
+        inputs, output, error = (Path(tmp) / f for f in ("inputs.npz", "output.npz", "error.txt"))
         np.savez(inputs, reference=reference, target=target)
-        # One thread per method process: the evaluation already runs many in parallel.
-        env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
-        try:
-            proc = subprocess.run(
-                [sys.executable, "-m", "pis3r.eval.baselines", name, str(inputs), str(output)],
-                capture_output=True, text=True, timeout=timeout, env=env,
-            )
-        except subprocess.TimeoutExpired:
-            raise MethodFailure(f"{name} timed out after {timeout:g} s") from None
-        if proc.returncode != 0 or not output.is_file():
-            lines = (proc.stderr or proc.stdout or "").strip().splitlines()
-            raise MethodFailure(f"{name} failed (exit {proc.returncode}): {lines[-1] if lines else 'no message'}")
+        exit_code = _launch(name, threads, geometry, inputs, output, error, timeout)
+        if exit_code is None:
+            raise MethodFailure(f"{name} timed out after {timeout:g} s")
+        if exit_code != 0 or not output.is_file():
+            message = error.read_text().strip() if error.is_file() else f"crashed (exit code {exit_code})"
+            raise MethodFailure(f"{name} failed: {message}")
         with np.load(output) as data:
-            offset = tuple(int(v) for v in data["ref_offset"]) if data["ref_offset"].size else None
-            return MethodOutput(data["image"], data["filled"], offset, float(data["seconds"]))
+            return _unpack(dict(data))
 
 
-def _child(name: str, inputs: str, output: str) -> int:
-    """Entry point of the child process: run one method, write its output, exit 0; or print
-    one line and exit 1."""
+def _launch(name: str, threads: int, geometry: bool, inputs: Path, output: Path, error: Path, timeout: float
+            ) -> int | None:
+    """Run :func:`_child` in a new process; its exit code, or ``None`` after a timeout (killed).
+
+    Forked from a forkserver that has imported pis3r once (a fresh interpreter spends ~5 s
+    importing torch). Daemonic processes (e.g. dask workers under a nanny) may not have
+    multiprocessing children, so there a fresh interpreter is started instead."""
+    args = (name, str(threads), str(int(geometry)), str(inputs), str(output), str(error))
+    if multiprocessing.current_process().daemon:
+        try:
+            return subprocess.run([sys.executable, "-m", "pis3r.eval.baselines", *args], timeout=timeout,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode
+        except subprocess.TimeoutExpired:
+            return None
+    process = _forkserver().Process(target=_child, args=args)
+    process.start()
+    process.join(timeout)
+    if process.is_alive():
+        process.kill()
+        process.join()
+        return None
+    return process.exitcode
+
+
+@functools.cache
+def _forkserver():
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["pis3r.eval.baselines"])
+    return context
+
+
+def _pack(output: MethodOutput) -> dict:
+    """``MethodOutput`` as a flat dict of arrays (an ``.npz``); absent parts are left out."""
+    arrays = {"seconds": np.float64(output.seconds)}
+    for prefix, canvas in (("canvas", output.canvas), ("target_canvas", output.target_canvas)):
+        if canvas is not None:
+            arrays[f"{prefix}_image"] = canvas.image.astype(np.float32)
+            arrays[f"{prefix}_filled"] = canvas.filled.astype(bool)
+            arrays[f"{prefix}_offset"] = np.array(canvas.offset if canvas.offset is not None else [], np.int64)
+    if output.relative_pose is not None:
+        arrays["relative_pose"] = output.relative_pose
+    return arrays
+
+
+def _unpack(arrays: dict) -> MethodOutput:
+    def canvas(prefix: str) -> Canvas | None:
+        if f"{prefix}_image" not in arrays:
+            return None
+        offset = arrays[f"{prefix}_offset"]
+        return Canvas(arrays[f"{prefix}_image"], arrays[f"{prefix}_filled"],
+                      tuple(int(v) for v in offset) if offset.size else None)
+
+    return MethodOutput(canvas("canvas"), float(arrays["seconds"]), canvas("target_canvas"),
+                        arrays.get("relative_pose"))
+
+
+def _child(name: str, threads: str, geometry: str, inputs: str, output: str, error: str) -> int:
+    """Run one method in the child process: write its output and return 0, or write one line
+    saying why it failed to ``error`` and return 1."""
+    import torch
+
+    # The evaluation runs several methods side by side: each gets its share of the cores.
+    cv2.setNumThreads(int(threads))
+    torch.set_num_threads(int(threads))
     with np.load(inputs) as data:
         reference, target = data["reference"], data["target"]
     try:
-        result = METHODS[name](reference, target)
+        result = METHODS[name](reference, target, bool(int(geometry)))
     except Exception as exc:  # any failure of a peer is a result here, reported in one line
-        print(f"{exc.__class__.__name__}: {exc}".splitlines()[0], file=sys.stderr)
+        Path(error).write_text(f"{exc.__class__.__name__}: {exc}".splitlines()[0])
         return 1
-    offset = np.array(result.ref_offset if result.ref_offset is not None else [], np.int64)
-    np.savez(output, image=result.image.astype(np.float32), filled=result.filled, ref_offset=offset,
-             seconds=result.seconds)
+    np.savez(output, **_pack(result))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(_child(*sys.argv[1:4]))
+    sys.exit(_child(*sys.argv[1:7]))

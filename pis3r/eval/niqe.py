@@ -46,7 +46,9 @@ def _load_params(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise WeightsError(f"NIQE pristine parameters {path} not found: run `make install` (or set {PARAMS_ENV})")
     try:
         with np.load(path, allow_pickle=False) as npz:
-            mu, cov, window = (np.asarray(npz[k], np.float64) for k in ("mu_pris_param", "cov_pris_param", "gaussian_window"))
+            mu, cov, window = (
+                np.asarray(npz[key], np.float64) for key in ("mu_pris_param", "cov_pris_param", "gaussian_window")
+            )
     except (OSError, KeyError, ValueError) as error:
         raise WeightsError(f"NIQE pristine parameters {path} cannot be read ({error}): run `make install`") from None
     return mu.reshape(-1), cov, window
@@ -76,7 +78,9 @@ def niqe_luma(luma: np.ndarray) -> float:
     mu_pristine, cov_pristine, window = pristine_params()
     rows, cols = luma.shape[0] // BLOCK, luma.shape[1] // BLOCK
     if rows * cols < 2:
-        raise InputError(f"NIQE needs an image of at least two {BLOCK}x{BLOCK} blocks, got {luma.shape[1]}x{luma.shape[0]}")
+        raise InputError(
+            f"NIQE needs an image of at least two {BLOCK}x{BLOCK} blocks, got {luma.shape[1]}x{luma.shape[0]}"
+        )
     image = np.asarray(luma, np.float64)[: rows * BLOCK, : cols * BLOCK]
 
     per_scale = []

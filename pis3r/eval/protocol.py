@@ -28,6 +28,7 @@ its ``valid_*`` and ``ext_*`` scores count black wherever the GT extends the ref
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,7 +36,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pis3r.camera import Camera
+from pis3r.camera import Camera, fundamental_matrix
+from pis3r.camera import relative_pose as camera_relative_pose
 from pis3r.errors import InputError
 from pis3r.eval import metrics
 from pis3r.io import read_image, to_uint8
@@ -51,6 +53,9 @@ MIN_INLIERS = 15
 # A stitched canvas is (close to) the reference's own perspective: a homography that
 # shrinks or grows areas by more than this is a wrong registration, not a result.
 MAX_AREA_CHANGE = 4.0
+# Geometry: matches between two canvases farther than this (px) from a fundamental matrix
+# fitted to them are mismatches, not distortion.
+GEOMETRY_OUTLIER_PX = 8.0
 # Pixels whose bilinear warp mixes in more than this share of unfilled canvas are not valid.
 VALID_WEIGHT = 0.999
 
@@ -235,17 +240,131 @@ def class_from_text(text: str) -> str:
     return UNKNOWN_CLASS
 
 
-def load_pair_cases(root: str | Path, crop: float = 0.6) -> list[Case]:
-    """Crop-protocol cases for every pair folder directly under ``root`` (sorted by name),
-    classed from ``root/SOURCES.md`` when there is one."""
+# Calibrated scenes of shared/data/real (SOURCES.md): view pairs (A, B) and their GT
+# baseline / median depth. Up to this level a stitched pair counts as slight parallax.
+CALIBRATED_PAIRS = {
+    "strecha-fountain-P11": ((4, 5, 0.20), (3, 6, 0.55), (2, 8, 1.15), (0, 10, 1.62)),
+    "strecha-Herz-Jesus-P8": ((3, 4, 0.16), (2, 5, 0.34), (0, 7, 0.72)),
+    "middlebury-templeRing": ((13, 14, 0.13), (13, 16, 0.40), (13, 19, 0.77), (13, 25, 1.43)),
+}
+SLIGHT_MAX_BASELINE_OVER_DEPTH = 0.2
+
+
+@dataclass(frozen=True)
+class CaseSpec:
+    """Where a case comes from, small enough to ship to a worker: ``kind`` is ``synth``
+    (a ``pis3r synth`` pair folder with ``gt.png``), ``pair`` (a pair folder, crop
+    protocol) or ``calibrated`` (views ``view_a``, ``view_b`` of a calibrated scene)."""
+
+    name: str
+    dataset: str
+    kind: str
+    folder: str
+    parallax_class: str = UNKNOWN_CLASS
+    parallax_level: float = math.nan
+    view_a: int = -1
+    view_b: int = -1
+
+
+def discover_cases(root: str | Path) -> list[CaseSpec]:
+    """Every case under ``root``, sorted by name: ``pis3r synth`` pair folders (any depth),
+    pair folders (``ref.*`` + ``tgt.*``) and the calibrated scenes of ``CALIBRATED_PAIRS``.
+    Parallax classes of pair folders come from a ``SOURCES.md`` in ``root`` if present."""
     root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such dataset folder")
     sources = root / "SOURCES.md"
     classes = parallax_classes_from_sources(sources) if sources.is_file() else {}
-    return [
-        load_crop_case(folder, crop, classes.get(folder.name, UNKNOWN_CLASS), dataset=root.name)
-        for folder in sorted(root.iterdir())
-        if folder.is_dir() and is_pair_dir(folder)
-    ]
+    specs = []
+    for folder in sorted(p for p in root.rglob("*") if p.is_dir()):
+        name = folder.relative_to(root).as_posix()
+        if folder.name in CALIBRATED_PAIRS:
+            for a, b, level in CALIBRATED_PAIRS[folder.name]:
+                cls = "slight" if level <= SLIGHT_MAX_BASELINE_OVER_DEPTH else "large"
+                specs.append(CaseSpec(f"{name}/{a}-{b}", root.name, "calibrated", str(folder), cls, level, a, b))
+        elif is_pair_dir(folder) and find_image(folder, "gt") is not None:
+            info = json.loads((folder / "case.json").read_text())
+            specs.append(CaseSpec(name, root.name, "synth", str(folder), info["parallax_class"],
+                                  float(info["homography_residual_pct"])))
+        elif is_pair_dir(folder):
+            # ScanNet pairs (gt.txt) are calibrated; SOURCES.md gives their class in prose.
+            cls = classes.get(folder.name, "large" if (folder / "gt.txt").is_file() else UNKNOWN_CLASS)
+            specs.append(CaseSpec(name, root.name, "pair", str(folder), cls))
+    if not specs:
+        raise InputError(f"{root}: no cases (pair folders with ref.* and tgt.*, or `pis3r synth` output)")
+    return specs
+
+
+def load_case(spec: CaseSpec, crop: float = 0.6) -> Case:
+    """Read the images (and GT cameras where known) of a case. ``crop`` applies to pair
+    folders and calibrated scenes; ``pis3r synth`` cases bring their own ground truth."""
+    folder = Path(spec.folder)
+    if spec.kind == "synth":
+        cameras = json.loads((folder / "cameras.json").read_text())
+        return Case(
+            name=spec.name,
+            dataset=spec.dataset,
+            reference=read_image(find_image(folder, "ref")).pixels,
+            target=read_image(find_image(folder, "tgt")).pixels,
+            gt=read_image(find_image(folder, "gt")).pixels,
+            crop_offset=tuple(int(v) for v in cameras["crop_offset"]),
+            parallax_class=spec.parallax_class,
+            parallax_level=spec.parallax_level,
+            cameras={key: Camera.from_dict(cameras[key]) for key in ("ref", "gt", "tgt")},
+        )
+    if spec.kind == "calibrated":
+        images, cameras = calibrated_views(folder, (spec.view_a, spec.view_b))
+    else:
+        images = [read_image(find_image(folder, stem)).pixels for stem in ("ref", "tgt")]
+        gt_txt = folder / "gt.txt"
+        cameras = scannet_cameras(gt_txt, images) if gt_txt.is_file() else None
+    return crop_case(*images, crop, spec.name, spec.dataset, spec.parallax_class, spec.parallax_level, cameras)
+
+
+def calibrated_views(folder: Path, views: tuple[int, int]) -> tuple[list[np.ndarray], tuple[Camera, Camera]]:
+    """Images and GT cameras of two views of a Strecha or Middlebury scene (formats in
+    shared/data/real/SOURCES.md)."""
+    if folder.name.startswith("strecha"):
+        paths = [folder / "images" / f"{v:04d}.jpg" for v in views]
+        images = [read_image(p).pixels for p in paths]
+        scale = dict(line.split(maxsplit=1) for line in (folder / "scale.txt").read_text().splitlines() if line.strip())
+        sx, sy = float(scale["sx"]), float(scale["sy"])
+        cameras = tuple(
+            strecha_camera(folder / "cameras" / f"{p.name}.camera", sx, sy, image.shape[1], image.shape[0])
+            for p, image in zip(paths, images)
+        )
+        return images, cameras
+    rows = {}
+    for line in (folder / "templeR_par.txt").read_text().splitlines()[1:]:
+        fields = line.split()
+        if len(fields) == 22:
+            rows[fields[0]] = np.array(fields[1:], np.float64)
+    names = [f"templeR{v:04d}.png" for v in views]
+    images = [read_image(folder / "images" / name).pixels for name in names]
+    cameras = tuple(
+        Camera(rows[name][:9], rows[name][9:18], rows[name][18:], image.shape[1], image.shape[0])
+        for name, image in zip(names, images)
+    )
+    return images, cameras
+
+
+def strecha_camera(path: Path, sx: float, sy: float, width: int, height: int) -> Camera:
+    """A Strecha ``.camera`` file (K, distortion, camera-to-world R, centre C, size; full
+    resolution) as a world-to-camera :class:`Camera` of an image downscaled by ``sx, sy``."""
+    values = np.array(path.read_text().split(), np.float64)
+    K = values[:9].reshape(3, 3) * np.array([[sx], [sy], [1.0]])
+    R_cam_to_world, centre = values[12:21].reshape(3, 3), values[21:24]
+    R = R_cam_to_world.T
+    return Camera(K, R, -R @ centre, width, height)
+
+
+def scannet_cameras(gt_txt: Path, images: list[np.ndarray]) -> tuple[Camera, Camera]:
+    """GT cameras of a ScanNet pair (``name0 name1 rot0 rot1 K0 K1 T_0to1``, SuperGlue's
+    format): camera 0 at the origin, ``x_cam1 = R x_cam0 + t``."""
+    values = np.array(gt_txt.read_text().split()[4:], np.float64)
+    K0, K1, T = values[:9], values[9:18], values[18:34].reshape(4, 4)
+    (h0, w0), (h1, w1) = images[0].shape[:2], images[1].shape[:2]
+    return Camera(K0, np.eye(3), np.zeros(3), w0, h0), Camera(K1, T[:3, :3], T[:3, 3], w1, h1)
 
 
 # --------------------------------------------------------------------------- placing
@@ -283,39 +402,46 @@ def empty_result(case: Case) -> Placed:
 # --------------------------------------------------------------------------- registration
 
 
-def _sift(image_u8: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    sift = cv2.SIFT_create(nfeatures=8000)
-    keypoints, descriptors = sift.detectAndCompute(cv2.cvtColor(image_u8, cv2.COLOR_RGB2GRAY), mask)
+def _sift(image: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT keypoints ``(N, 2)`` and descriptors of ``(H, W, 3)`` ``image`` inside ``mask``
+    ``(H, W)`` bool, eroded so that no keypoint sits on the edge of the content."""
+    mask_u8 = cv2.erode(mask.astype(np.uint8) * 255, np.ones((5, 5), np.uint8))
+    gray = cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2GRAY)
+    keypoints, descriptors = cv2.SIFT_create(nfeatures=8000).detectAndCompute(gray, mask_u8)
     return np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2), descriptors
+
+
+def match_images(image_a: np.ndarray, mask_a: np.ndarray, image_b: np.ndarray, mask_b: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT matches (Lowe's ratio ``RATIO``) between two images, each inside its mask:
+    ``(N, 2)``, ``(N, 2)`` float32 pixels of a and of b."""
+    pts_a, desc_a = _sift(image_a, mask_a)
+    pts_b, desc_b = _sift(image_b, mask_b)
+    if desc_a is None or desc_b is None or len(pts_a) < 2 or len(pts_b) < 2:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
+    return pts_a[[m.queryIdx for m in good]].reshape(-1, 2), pts_b[[m.trainIdx for m in good]].reshape(-1, 2)
 
 
 def register(image: np.ndarray, filled: np.ndarray, case: Case) -> Registration:
     """Register a stitched canvas ``(h, w, 3)`` (``filled`` ``(h, w)`` bool) to the padded
-    reference: SIFT inside the filled area and inside the reference crop, Lowe ratio test,
+    reference: SIFT inside the filled area and inside the reference crop, Lowe's ratio test,
     MAGSAC homography. Fails (``homography=None``) with too few inliers or a homography that
     changes areas by more than ``MAX_AREA_CHANGE``."""
-    # Erode so that SIFT does not fire on the border between content and empty canvas.
-    canvas_mask = cv2.erode(filled.astype(np.uint8) * 255, np.ones((5, 5), np.uint8))
-    pts_canvas, desc_canvas = _sift(to_uint8(image), canvas_mask)
-    pts_ref, desc_ref = _sift(to_uint8(case.padded_reference), case.reference_region.astype(np.uint8) * 255)
-    if desc_canvas is None or desc_ref is None or len(pts_canvas) < 2 or len(pts_ref) < 2:
-        return Registration(None, 0, 0, "no features")
-    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_canvas, desc_ref, k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
-    if len(good) < MIN_INLIERS:
-        return Registration(None, len(good), 0, f"{len(good)} matches")
-    src = pts_canvas[[m.queryIdx for m in good]]
-    dst = pts_ref[[m.trainIdx for m in good]]
+    src, dst = match_images(image, filled, case.padded_reference, case.reference_region)
+    if len(src) < MIN_INLIERS:
+        return Registration(None, len(src), 0, f"{len(src)} matches")
     homography, inlier_mask = cv2.findHomography(
         src, dst, cv2.USAC_MAGSAC, MAGSAC_THRESHOLD_PX, maxIters=10000, confidence=0.999
     )
     inliers = int(inlier_mask.sum()) if inlier_mask is not None else 0
     if homography is None or inliers < MIN_INLIERS:
-        return Registration(None, len(good), inliers, f"{inliers} inliers")
+        return Registration(None, len(src), inliers, f"{inliers} inliers")
     area_change = abs(np.linalg.det(homography[:2, :2] / homography[2, 2]))
     if not 1.0 / MAX_AREA_CHANGE <= area_change <= MAX_AREA_CHANGE:
-        return Registration(None, len(good), inliers, f"degenerate homography (area x{area_change:.2g})")
-    return Registration(homography, len(good), inliers)
+        return Registration(None, len(src), inliers, f"degenerate homography (area x{area_change:.2g})")
+    return Registration(homography, len(src), inliers)
 
 
 # --------------------------------------------------------------------------- scores
@@ -342,9 +468,13 @@ def score_placed(placed: Placed, case: Case, failed: bool = False, lpips_device:
 def _quality(image: np.ndarray, gt: np.ndarray, mask: np.ndarray, prefix: str, lpips_device: str) -> dict:
     if not mask.any():
         return {f"{prefix}_psnr": math.nan, f"{prefix}_ssim": math.nan, f"{prefix}_lpips": math.nan}
+    try:
+        ssim = float(metrics.ssim(image, gt, mask=mask))
+    except InputError:  # the region lies entirely in the 5-px border SSIM does not score
+        ssim = math.nan
     return {
         f"{prefix}_psnr": float(metrics.psnr(image, gt, mask=mask)),
-        f"{prefix}_ssim": float(metrics.ssim(image, gt, mask=mask)),
+        f"{prefix}_ssim": ssim,
         f"{prefix}_lpips": float(metrics.lpips(image, gt, mask=mask, device=lpips_device)),
     }
 
@@ -392,3 +522,46 @@ def score_registered(stitched, case: Case, filled: np.ndarray | None = None, lpi
 def score_failure(case: Case, lpips_device: str = "cpu") -> dict:
     """Scores of a method that produced nothing usable (crash, timeout, refusal, unregistrable)."""
     return score_placed(empty_result(case), case, failed=True, lpips_device=lpips_device)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def score_geometry(canvas_ref: tuple[np.ndarray, np.ndarray, tuple[int, int]],
+                   canvas_tgt: tuple[np.ndarray, np.ndarray, tuple[int, int]], case: Case) -> dict:
+    """Sampson epipolar error (paper eq. 11) between the two canvases of a pair, one in the
+    reference camera's view and one in the target's, against the GT fundamental matrix of
+    the two canvas cameras (GT cameras with the principal point moved by each canvas's offset).
+
+    Each canvas is ``(image (h, w, 3), filled (h, w) bool, offset (x, y))`` where ``offset``
+    is the canvas pixel of its own camera's pixel (0, 0). SIFT matches between the canvases
+    are cleaned of gross mismatches by a loose MAGSAC fundamental matrix fitted to the
+    matches themselves (``GEOMETRY_OUTLIER_PX``): that keeps any consistent distortion of the
+    stitched images, which is what the GT matrix measures. Returns ``{sampson_mean,
+    sampson_median (px²), sampson_matches}``."""
+    (image_a, filled_a, offset_a), (image_b, filled_b, offset_b) = canvas_ref, canvas_tgt
+    camera_a = case.cameras["ref"].shifted(*offset_a, image_a.shape[1], image_a.shape[0])
+    camera_b = case.cameras["tgt"].shifted(*offset_b, image_b.shape[1], image_b.shape[0])
+    pts_a, pts_b = match_images(image_a, filled_a, image_b, filled_b)
+    if len(pts_a) >= 8:
+        _, inliers = cv2.findFundamentalMat(pts_a, pts_b, cv2.USAC_MAGSAC, GEOMETRY_OUTLIER_PX, 0.999, 10000)
+        if inliers is not None:
+            pts_a, pts_b = pts_a[inliers.ravel() > 0], pts_b[inliers.ravel() > 0]
+    if len(pts_a) < 8:
+        return {"sampson_mean": math.nan, "sampson_median": math.nan, "sampson_matches": len(pts_a)}
+    errors = metrics.sampson_error(fundamental_matrix(camera_a, camera_b), pts_a, pts_b)
+    return {"sampson_mean": float(np.nanmean(errors)), "sampson_median": float(np.nanmedian(errors)),
+            "sampson_matches": len(pts_a)}
+
+
+def pose_error(relative_pose: np.ndarray, case: Case) -> dict:
+    """Error of a reconstructed relative pose ``(3, 4)`` ``[R | t]`` (reference camera ->
+    target camera, ``x_tgt = R x_ref + t``) against the GT cameras: ``rotation_error_deg``
+    (angle of ``R_est R_gt^T``) and ``translation_error_deg`` (angle between the translation
+    directions; NaN when either has none, e.g. a rotating camera)."""
+    R_gt, t_gt = camera_relative_pose(case.cameras["ref"], case.cameras["tgt"])
+    R, t = relative_pose[:, :3], relative_pose[:, 3]
+    cos_rotation = np.clip((np.trace(R @ R_gt.T) - 1.0) / 2.0, -1.0, 1.0)
+    norms = np.linalg.norm(t) * np.linalg.norm(t_gt)
+    translation = math.degrees(math.acos(np.clip(t @ t_gt / norms, -1.0, 1.0))) if norms > 1e-12 else math.nan
+    return {"rotation_error_deg": math.degrees(math.acos(cos_rotation)), "translation_error_deg": translation}

@@ -142,8 +142,9 @@ class ClassicalReconstructor:
                 focal_ref = geometry.focal_from_homography(H, w, h)
                 source = "self-calibrated (rotation homography)"
             else:
-                focal_ref, _ = geometry.focal_from_fundamental(F, w, h)
-                source = "self-calibrated (essential-matrix singular values)"
+                focal_ref, determined = geometry.focal_from_essential_inliers(inliers, w, h)
+                source = "self-calibrated (essential-matrix inliers)" if determined else None
+                focal_ref = focal_ref if determined else None
             if focal_ref is None:
                 focal_ref = geometry.FALLBACK_FOCAL_FACTOR * max(w, h)
                 source = "fallback (1.2 x longest side: self-calibration was not determined)"
@@ -164,14 +165,12 @@ class ClassicalReconstructor:
                 reason = "essential matrix failed; falling back to the homography model"
                 warnings.append(reason)
         if model == "3d":
-            R, t, e_inl = pose
-            used = inliers.subset(e_inl)
-            R, t, f_new = geometry.refine_pose(used, R, t, focal_ref, w, h, refine_focal and not focal_other_known)
-            if f_new != focal_ref:
-                focal_other *= f_new / focal_ref
-                focal_ref = f_new
-                K_ref = intrinsics(focal_ref, w, h)
-                K_other = intrinsics(focal_other, other.width, other.height)
+            R, t, _ = pose
+            R, t, K_ref, K_other = geometry.refine_pose(
+                inliers, R, t, K_ref, K_other, refine_focal and not focal_other_known
+            )
+            focal_ref = float(K_ref[0, 0])
+            used = inliers
             views = self._views_3d(ref, other, K_ref, K_other, R, t, H, used)
         else:
             views = self._views_homography(ref, other, K_ref, K_other, H, inliers)

@@ -114,8 +114,10 @@ def _depth_from_flow(forward, backward, K_a, K_b, R, t, gray_a) -> DepthMeasurem
     conf = (
         np.exp(-((fb_error / (1.0 * scale + 0.5)) ** 2))
         * np.exp(-((epi_error / (1.5 * scale + 0.5)) ** 2))
-        * np.clip(np.degrees(angle) / 1.0, 0.0, 1.0)
-        * _texture(gray_a).reshape(-1)
+        # A small triangulation angle makes depth uncertain but barely moves the
+        # reprojection (transfer is insensitive to depth then), so it only softens.
+        * np.clip(np.degrees(angle) / 0.5, 0.2, 1.0)
+        * np.maximum(_texture(gray_a).reshape(-1), 0.3)
     )
     conf = np.where(ok, np.nan_to_num(conf), 0.0)
     depth = np.where(conf > 0.05, depth, 0.0)

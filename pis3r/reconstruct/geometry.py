@@ -70,51 +70,55 @@ def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | 
     return H, mask.ravel().astype(bool)
 
 
-def focal_from_fundamental(F: np.ndarray, width: int, height: int) -> tuple[float | None, float]:
-    """Shared focal making ``K^T F K`` closest to an essential matrix.
+def focal_from_essential_inliers(matches: Matches, width: int, height: int) -> tuple[float, bool]:
+    """Shared focal that lets an essential matrix explain the most matches.
 
-    Scans f over a plausible range and minimises the normalised gap between the two
-    non-zero singular values of E(f) (zero for a true essential matrix). Returns the
-    focal (or None when the minimum lies on the range boundary, i.e. the
-    configuration does not determine f) and the gap at the minimum.
+    Scans f over typical lenses (0.5 to 3 x the longest side); for each, an essential
+    matrix is fitted with MAGSAC++ at a fixed pixel threshold and its inliers are
+    counted. Near-ties (within 3 % of the best count) go to the f closest to the
+    prior ``FALLBACK_FOCAL_FACTOR``, since two views often determine f poorly.
+    Returns ``(focal, determined)``; ``determined`` is False when the inlier count is
+    flat over the whole range (then f is the prior).
     """
     side = max(width, height)
-    candidates = np.geomspace(FOCAL_RANGE[0], FOCAL_RANGE[1], 300) * side
-    gaps = np.array([_essential_gap(F, f, width, height) for f in candidates])
-    best = int(np.argmin(gaps))
-    if best in (0, len(candidates) - 1):
-        return None, float(gaps[best])
-    # Flat valleys (e.g. optical axes meeting in one point) leave f undetermined.
-    if gaps[best] > 0.5 * min(gaps[0], gaps[-1]):
-        return None, float(gaps[best])
-    lo, hi = candidates[best - 1], candidates[best + 1]
-    for _ in range(30):
-        m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-        if _essential_gap(F, m1, width, height) < _essential_gap(F, m2, width, height):
-            hi = m2
-        else:
-            lo = m1
-    f = 0.5 * (lo + hi)
-    return f, _essential_gap(F, f, width, height)
-
-
-def _essential_gap(F: np.ndarray, f: float, width: int, height: int) -> float:
-    K = intrinsics(f, width, height)
-    s = np.linalg.svd(K.T @ F @ K, compute_uv=False)
-    return float((s[0] - s[1]) / (s[0] + 1e-12))
+    candidates = np.geomspace(0.5, 3.0, 13) * side
+    counts = []
+    for f in candidates:
+        K = intrinsics(f, width, height)
+        na, nb = _normalised(K, matches.pts_a), _normalised(K, matches.pts_b)
+        threshold = 1.0 * _pixel_scale(width, height) / f
+        E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, threshold, 5000)
+        counts.append(0 if E is None else int(mask.sum()))
+    counts = np.array(counts, float)
+    prior = FALLBACK_FOCAL_FACTOR * side
+    near_best = counts >= 0.97 * counts.max()
+    if near_best.all():
+        return prior, False
+    pick = np.flatnonzero(near_best)
+    best = pick[np.argmin(np.abs(np.log(candidates[pick] / prior)))]
+    return float(candidates[best]), True
 
 
 def focal_from_homography(H: np.ndarray, width: int, height: int) -> float | None:
-    """Focal of a camera rotating about its centre, from the induced homography."""
-    c = np.array([[1, 0, -(width - 1) / 2], [0, 1, -(height - 1) / 2], [0, 0, 1.0]])
-    Hc = c @ H @ np.linalg.inv(c)
-    f0, f1, ok0, ok1 = cv2.detail.focalsFromHomography(Hc / Hc[2, 2])
-    found = [f for f, ok in ((f0, ok0), (f1, ok1)) if ok and np.isfinite(f) and f > 0]
-    if not found:
-        return None
-    f = float(np.sqrt(np.prod(found))) if len(found) == 2 else float(found[0])
+    """Focal of a camera rotating about its centre, from the induced homography a -> b.
+
+    For the right f, ``K^-1 H K`` is a scaled rotation; scan f and keep the one whose
+    normalised ``M M^T`` is closest to the identity. None when undetermined.
+    """
     side = max(width, height)
-    return f if FOCAL_RANGE[0] * side < f < FOCAL_RANGE[1] * side else None
+
+    def deviation(f):
+        K = intrinsics(f, width, height)
+        M = np.linalg.inv(K) @ H @ K
+        M = M / np.cbrt(np.linalg.det(M))
+        return float(np.linalg.norm(M @ M.T - np.eye(3)))
+
+    candidates = np.geomspace(FOCAL_RANGE[0], FOCAL_RANGE[1], 300) * side
+    costs = np.array([deviation(f) for f in candidates])
+    best = int(np.argmin(costs))
+    if best in (0, len(candidates) - 1) or costs[best] > 0.5 * min(costs[0], costs[-1]):
+        return None
+    return float(candidates[best])
 
 
 def _normalised(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -155,37 +159,57 @@ def _skew(t: np.ndarray) -> np.ndarray:
 
 
 def refine_pose(
-    matches: Matches, R: np.ndarray, t: np.ndarray, focal: float, width: int, height: int, refine_focal: bool
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """Minimise the robust Sampson error of all inliers over rotation, translation
-    direction and (optionally) the shared focal. Returns ``(R, t, focal)``."""
-    side = max(width, height)
+    matches: Matches,
+    R: np.ndarray,
+    t: np.ndarray,
+    K_a: np.ndarray,
+    K_b: np.ndarray,
+    refine_focal: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Minimise the robust Sampson error of all epipolar inliers over rotation,
+    translation direction and (optionally) one focal per view.
+
+    Two focals + pose have the 7 degrees of freedom of a fundamental matrix, so the
+    refined cameras reproduce the measured epipolar geometry exactly — what the
+    reprojection needs — even where two views determine f poorly. A weak log-normal
+    prior holds each focal near its start. The result is put back on the right
+    side of the twisted-pair ambiguity (points in front of both cameras), which
+    the Sampson error cannot see. Returns ``(R, t, K_a, K_b)``.
+    """
+    scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
+    t = t / np.linalg.norm(t)
 
     def unpack(p):
-        f = focal * np.exp(p[5]) if refine_focal else focal
         Rm = Rotation.from_rotvec(p[:3]).as_matrix() @ R
         theta, phi = p[3], p[4]
         tv = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
-        return Rm, tv, f
+        Ka, Kb = K_a.copy(), K_b.copy()
+        if refine_focal:
+            Ka[:2, :2] *= np.exp(p[5])
+            Kb[:2, :2] *= np.exp(p[6])
+        return Rm, tv, Ka, Kb
 
-    t = t / np.linalg.norm(t)
-    p0 = np.zeros(6 if refine_focal else 5)
+    p0 = np.zeros(7 if refine_focal else 5)
     p0[3] = np.arccos(np.clip(t[2], -1, 1))
     p0[4] = np.arctan2(t[1], t[0])
 
     def residuals(p):
-        Rm, tv, f = unpack(p)
-        K = intrinsics(f, width, height)
-        Kinv = np.linalg.inv(K)
-        F = Kinv.T @ _skew(tv) @ Rm @ Kinv
-        return _sampson(F, matches.pts_a, matches.pts_b)
+        Rm, tv, Ka, Kb = unpack(p)
+        F = np.linalg.inv(Kb).T @ _skew(tv) @ Rm @ np.linalg.inv(Ka)
+        sampson = _sampson(F, matches.pts_a, matches.pts_b)
+        if not refine_focal:
+            return sampson
+        return np.append(sampson, 3.0 * scale * p[5:7])
 
-    scale = 1.0 * _pixel_scale(width, height)
-    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=scale, max_nfev=200)
-    Rm, tv, f = unpack(fit.x)
-    if not (FOCAL_RANGE[0] * side < f < FOCAL_RANGE[1] * side):
-        return R, t, focal
-    return Rm, tv, f
+    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=scale, max_nfev=300)
+    Rm, tv, Ka, Kb = unpack(fit.x)
+    side_a = 2 * max(K_a[:2, 2]) + 1
+    if not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
+        Rm, tv, Ka, Kb = unpack(np.concatenate([p0[:5], np.zeros(len(p0) - 5)]))
+    E = _skew(tv) @ Rm
+    na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
+    _, Rc, tc, _ = cv2.recoverPose(E, na, nb, np.eye(3))
+    return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb
 
 
 def plane_from_homography(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a: np.ndarray):

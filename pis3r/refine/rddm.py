@@ -44,10 +44,10 @@ def linear_schedule(steps: int = 1000, noise_scale: float = 1.0) -> Schedule:
     ``beta_i^2`` increasing linearly with sum ``noise_scale``."""
     i = torch.arange(1, steps + 1, dtype=torch.float64)
     norm = steps * (steps + 1)
-    alpha = 2.0 * (steps + 1 - i) / norm
-    beta_sq = noise_scale * 2.0 * i / norm
-    alpha_bar = torch.cumsum(alpha, 0).clamp(0.0, 1.0)
-    beta_bar = torch.cumsum(beta_sq, 0).sqrt()
+    # Closed forms of the cumulative sums of alpha_i = 2(T+1-i)/norm and
+    # beta_i^2 = 2 s i/norm: unlike a float cumsum they give abar_T = 1 exactly.
+    alpha_bar = i * (2 * steps + 1 - i) / norm
+    beta_bar = (noise_scale * i * (i + 1) / norm).sqrt()
     return Schedule(alpha_bar=alpha_bar, beta_bar=beta_bar, noise_scale=float(noise_scale))
 
 
@@ -63,10 +63,11 @@ def q_sample(x0: torch.Tensor, res: torch.Tensor, eps: torch.Tensor, t: torch.Te
 
 
 def residual_and_noise(
-    output: torch.Tensor, objective: str, x_t: torch.Tensor, xin: torch.Tensor, t: int, schedule: Schedule
+    output: torch.Tensor, objective: str, x_t: torch.Tensor, xin: torch.Tensor, t: int | torch.Tensor,
+    schedule: Schedule,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Read a network output ``(B, C, H, W)`` as ``(res_hat, eps_hat)``, each ``(B, 3, H, W)``,
-    following the recovery column of spec §3 for ``objective``."""
+    following the recovery column of spec §3 for ``objective``; ``t``: an int or ``(B,)``."""
     abar = _coefficient(schedule.alpha_bar, t, x_t)
     bbar = _coefficient(schedule.beta_bar, t, x_t)
     if objective == "pred_res_noise":

@@ -23,6 +23,7 @@ from pis3r.synth.textures import (
     TEXTURE_SIZE,
     Texture,
     flat_texture,
+    landscape_texture,
     skimage_textures,
     sky_texture,
 )
@@ -83,14 +84,14 @@ class Scene:
     home: np.ndarray
 
 
-def quad(corners: np.ndarray, tile: tuple[float, float], texture: int, tint: np.ndarray) -> Mesh:
+def quad(corners: np.ndarray, tile: tuple[float, float], texture: int, tint: np.ndarray, u0: float = 0.0) -> Mesh:
     """Planar quad ``corners (4, 3)`` in order top-left, top-right, bottom-right,
     bottom-left (as seen from the front); the texture repeats every ``tile`` metres
-    along (top edge, left edge); its row 0 is at the top edge."""
+    along (top edge, left edge), starting at ``u0`` at the left; its row 0 is at the top."""
     c = np.asarray(corners, dtype=np.float64)
-    width = np.linalg.norm(c[1] - c[0]) / tile[0]
+    u1 = u0 + np.linalg.norm(c[1] - c[0]) / tile[0]
     height = np.linalg.norm(c[3] - c[0]) / tile[1]
-    uv = np.array([[0, 0], [width, 0], [width, height], [0, height]], dtype=np.float64)
+    uv = np.array([[u0, 0], [u1, 0], [u1, height], [u0, height]], dtype=np.float64)
     order = [0, 1, 2, 0, 2, 3]
     return Mesh(c[order], uv[order], np.full(2, texture), np.tile(tint, (2, 1)))
 
@@ -137,9 +138,9 @@ def cylinder(centre_xz: tuple[float, float], radius: float, height: float, segme
     angles = np.linspace(0.0, 2.0 * np.pi, segments + 1)
     centre = np.array([centre_xz[0], 0.0, centre_xz[1]])
     rim = centre + radius * np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
-    parts = []
-    for a, b in zip(rim[:-1], rim[1:]):
-        parts.append(quad(np.array([a + UP * height, b + UP * height, b, a]), tile, texture, tint))
+    side = 2.0 * radius * np.sin(np.pi / segments)
+    parts = [quad(np.array([a + UP * height, b + UP * height, b, a]), tile, texture, tint, u0=k * side / tile[0])
+             for k, (a, b) in enumerate(zip(rim[:-1], rim[1:]))]  # u runs on around the cylinder
     if cap_texture is not None:
         top = rim + UP * height
         apex = centre + UP * height
@@ -159,7 +160,7 @@ class _Palette:
         self.layers = [photos[i] for i in chosen] + [t for t in library if t.kind == "material"]
         self.layers += [Texture(make.__name__, make(rng), "pattern") for make in PATTERNS]
         self.layers += [Texture("flat", flat_texture(rng), "flat") for _ in range(2)]
-        self.layers += [Texture("sky", sky_texture(rng), "sky")]
+        self.layers += [Texture("sky", sky_texture(rng), "sky"), Texture("landscape", landscape_texture(rng), "landscape")]
         self.rng = rng
 
     def pick(self, *kinds: str) -> tuple[int, np.ndarray]:
@@ -171,7 +172,7 @@ class _Palette:
             tint = self.rng.uniform(0.45, 1.0, 3)
         elif kind == "photo":
             tint = self.rng.uniform(0.85, 1.0, 3)
-        else:
+        else:  # procedural layers carry their own colours
             tint = np.ones(3)
         return layer, tint
 
@@ -185,17 +186,17 @@ class _Palette:
 
 
 def _surroundings(palette: _Palette, rng: np.random.Generator) -> tuple[Mesh, list[Mesh]]:
-    """Ground square and the far world: a cylindrical photo backdrop of radius 120-300 m
-    with a sky cap. Returns (ground, [backdrop])."""
+    """Ground square and the far world: a cylindrical backdrop of radius 120-300 m (far
+    hills, or a photo mural in one scene of four) up to 45 deg elevation, closed by a sky
+    cap. Returns (ground, [backdrop])."""
     radius = rng.uniform(120.0, 300.0)
-    height = 0.7 * radius  # the wall covers elevations up to 35 deg, the sky cap the rest
-    layer, tint = palette.pick("material", "pattern", "photo")
+    layer, tint = palette.pick("material", "pattern")
     tile = rng.uniform(1.5, 4.0)
     r = radius
     ground = quad(np.array([[-r, 0, r], [r, 0, r], [r, 0, -r], [-r, 0, -r]]), (tile, tile), layer, tint)
-    wall_layer, wall_tint = palette.pick("photo")
+    wall_layer, wall_tint = palette.pick("photo" if rng.random() < 0.25 else "landscape")
     sky_layer, _ = palette.pick("sky")
-    backdrop = cylinder((0.0, 0.0), radius, height, 64, wall_layer, wall_tint, (height, height),
+    backdrop = cylinder((0.0, 0.0), radius, radius, 64, wall_layer, wall_tint, (radius, radius),
                         cap_texture=sky_layer, cap_tile=radius)
     return ground, [backdrop]
 
@@ -267,8 +268,7 @@ def demo_scene(rng: np.random.Generator | int) -> Scene:
     parts = [ground]
     for distance, x, width in ((3.0, -0.8, 1.6), (7.0, 1.5, 3.5), (16.0, -2.0, 8.0)):
         layer, tint = palette.pick("photo")
-        parts.append(box((x, distance), (width, 0.75 * width, 0.1), rng.uniform(-0.3, 0.3), layer, tint,
-                         width, base=0.2 * width))
+        parts.append(box((x, distance), (width, 0.75 * width, 0.1), rng.uniform(-0.3, 0.3), layer, tint, width))
     for x, z in ((2.2, 4.5), (-3.0, 10.0)):
         layer, tint = palette.pick("material", "pattern")
         parts.append(box((x, z), tuple(rng.uniform(0.8, 1.6, 3)), rng.uniform(0, np.pi), layer, tint, 1.0))

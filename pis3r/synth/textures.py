@@ -14,20 +14,22 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from pis3r.errors import InputError
 from pis3r.io import read_image, to_uint8
 
 TEXTURE_SIZE = 512
 
-# Photos bundled in scikit-image's wheel (skimage/data/*); the others in skimage.data
-# (brain, kidney, eagle, ...) are fetched over the network and must not be used.
+# Photos inside scikit-image's wheel (skimage/data/), read as files: importing
+# skimage.data costs a second, and its other images (brain, kidney, eagle, ...) are
+# downloaded on first use, which must never happen here.
 SKIMAGE_PHOTOS = (
-    "astronaut", "camera", "chelsea", "coffee", "rocket", "coins", "moon", "page",
-    "hubble_deep_field", "immunohistochemistry", "colorwheel",
+    "astronaut.png", "camera.png", "chelsea.png", "coffee.png", "rocket.jpg", "coins.png", "moon.png",
+    "page.png", "hubble_deep_field.jpg", "ihc.png", "motorcycle_left.png",
 )
-# Grey material photos: tinted per surface so one photo gives many materials.
-SKIMAGE_MATERIALS = ("brick", "grass", "gravel")
+# Grey photos of real materials: tinted per surface so one photo gives many materials.
+SKIMAGE_MATERIALS = ("brick.png", "grass.png", "gravel.png")
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 
@@ -36,7 +38,8 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 class Texture:
     """One texture layer: ``pixels (S, S, 3)`` uint8; ``kind`` is ``photo`` (real,
     colour or grey), ``material`` (grey real surface to tint), ``pattern``
-    (procedural, textured), ``flat`` (almost uniform: low texture) or ``sky``."""
+    (procedural, textured), ``flat`` (almost uniform: low texture), ``sky`` or
+    ``landscape`` (far hills under a sky, for the backdrop)."""
 
     name: str
     pixels: np.ndarray
@@ -60,15 +63,15 @@ def square(image: np.ndarray, size: int = TEXTURE_SIZE) -> np.ndarray:
 @functools.lru_cache(maxsize=1)
 def skimage_textures() -> tuple[Texture, ...]:
     """The bundled scikit-image photos and materials as textures (loaded once)."""
-    import skimage.data
+    import skimage
 
-    def load(name: str) -> np.ndarray:
-        image = getattr(skimage.data, name)()
-        return image.astype(np.uint8) * 255 if image.dtype == bool else image
+    folder = Path(skimage.__file__).parent / "data"
 
-    photos = [Texture(n, square(load(n)), "photo") for n in SKIMAGE_PHOTOS]
-    materials = [Texture(n, square(load(n)), "material") for n in SKIMAGE_MATERIALS]
-    return tuple(photos + materials)
+    def load(file: str, kind: str) -> Texture:
+        with Image.open(folder / file) as image:  # PIL: quiet about page.png's odd ICC profile
+            return Texture(Path(file).stem, square(np.asarray(image.convert("RGB"))), kind)
+
+    return tuple([load(f, "photo") for f in SKIMAGE_PHOTOS] + [load(f, "material") for f in SKIMAGE_MATERIALS])
 
 
 def folder_textures(folder: str | Path) -> tuple[Texture, ...]:
@@ -91,18 +94,24 @@ def folder_textures(folder: str | Path) -> tuple[Texture, ...]:
     return tuple(textures)
 
 
-def periodic_noise(rng: np.random.Generator, size: int, slope: float = 1.5, lowest: float = 2.0) -> np.ndarray:
-    """Tileable fractal noise ``(size, size)`` float in [0, 1], made in the Fourier domain:
-    random complex coefficients with amplitude ``f**-slope`` for ``f >= lowest`` cycles per
-    texture (larger ``slope``: smoother; larger ``lowest``: smaller blobs)."""
+@functools.lru_cache(maxsize=16)
+def _amplitude(size: int, slope: float, lowest: float) -> np.ndarray:
+    """``f**-slope`` on the ``rfft2`` grid of a ``size``-square texture, 0 below ``lowest``."""
     fy = np.fft.fftfreq(size)[:, None] * size
     fx = np.fft.rfftfreq(size)[None, :] * size
     freq = np.hypot(fx, fy)
-    amplitude = np.where(freq >= lowest, np.maximum(freq, 1.0) ** -slope, 0.0)
-    coefficients = rng.standard_normal(freq.shape) + 1j * rng.standard_normal(freq.shape)
-    noise = np.fft.irfft2(amplitude * coefficients, s=(size, size))
+    return np.where(freq >= lowest, np.maximum(freq, 1.0) ** -slope, 0.0).astype(np.float32)
+
+
+def periodic_noise(rng: np.random.Generator, size: int, slope: float = 1.5, lowest: float = 2.0) -> np.ndarray:
+    """Tileable fractal noise ``(size, size)`` float32 in [0, 1], made in the Fourier domain:
+    random complex coefficients with amplitude ``f**-slope`` for ``f >= lowest`` cycles per
+    texture (larger ``slope``: smoother; larger ``lowest``: smaller blobs)."""
+    amplitude = _amplitude(size, slope, lowest)
+    real, imag = rng.standard_normal((2, *amplitude.shape), dtype=np.float32)
+    noise = np.fft.irfft2(amplitude * (real + 1j * imag), s=(size, size)).astype(np.float32)
     noise -= noise.min()
-    return noise / max(noise.max(), 1e-12)
+    return noise / max(float(noise.max()), 1e-12)
 
 
 def _mix(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -150,11 +159,29 @@ def flat_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarr
     return to_uint8(colour + (4.0 / 255.0) * (periodic_noise(rng, size) - 0.5)[..., None])
 
 
+def _sky(rng: np.random.Generator, size: int, blue: np.ndarray) -> np.ndarray:
+    clouds = np.clip((periodic_noise(rng, size, slope=2.0, lowest=1) - 0.5) * 2.5, 0.0, 1.0)
+    return _mix(blue, np.array([0.95, 0.95, 0.97]), clouds)
+
+
 def sky_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
     """Blue sky with soft clouds: smooth, little texture (as a real sky)."""
-    blue = np.array([0.35, 0.55, 0.9]) * rng.uniform(0.8, 1.1)
-    clouds = np.clip((periodic_noise(rng, size, slope=2.0, lowest=1) - 0.5) * 2.5, 0.0, 1.0)
-    return to_uint8(_mix(blue, np.array([0.95, 0.95, 0.97]), clouds))
+    return to_uint8(_sky(rng, size, np.array([0.35, 0.55, 0.9]) * rng.uniform(0.8, 1.1)))
+
+
+def landscape_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
+    """A far landscape for the backdrop wall (row 0 = top): two ranges of fractal hills
+    (the farther one hazier) over the bottom 10-45 %, hazy sky with clouds above."""
+    image = _sky(rng, size, np.array([0.5, 0.65, 0.9]) * rng.uniform(0.85, 1.1))
+    rows = np.arange(size)[:, None]
+    for haze, (low, high) in ((0.45, (0.25, 0.45)), (0.0, (0.1, 0.3))):  # far range first
+        profile = periodic_noise(rng, size, slope=1.5, lowest=1)[0]
+        ridge = size * (1.0 - low - (high - low) * profile)
+        terrain = _mix(np.array([0.25, 0.4, 0.15]) * rng.uniform(0.7, 1.2, 3),
+                       np.array([0.45, 0.38, 0.28]) * rng.uniform(0.7, 1.2, 3), periodic_noise(rng, size, slope=1.2))
+        terrain = terrain * (1.0 - haze) + haze * np.array([0.6, 0.68, 0.8])
+        image = np.where((rows >= ridge[None, :])[..., None], terrain, image)
+    return to_uint8(image)
 
 
 PATTERNS = (noise_texture, checker_texture, bricks_texture)

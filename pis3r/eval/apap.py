@@ -1,0 +1,192 @@
+"""APAP — as-projective-as-possible warping with moving DLT (Zaragoza et al., TPAMI 2014).
+
+Implemented from the paper's equations, vectorised over all grid cells:
+
+- global DLT (eq. 3-5): ``h = argmin ||A h||`` s.t. ``||h|| = 1``, on Hartley-normalised
+  matches, ``A`` stacks two rows per match;
+- moving DLT (eq. 7-9): for each cell centre ``x*`` of a grid laid over the canvas,
+  ``h* = argmin ||W* A h||`` with ``W* = diag(w_1, w_1, ..., w_N, w_N)`` and
+  ``w_i = max(exp(-||x* - x_i||^2 / sigma^2), gamma)`` (eq. 8); ``gamma`` keeps the fit
+  close to the global homography far from any match;
+- every canvas pixel takes the homography of its cell; the target is warped onto the
+  reference frame and blended with the reference by feathering (linear weights growing
+  with the distance to each image's border).
+
+``||W A h||^2 = h^T (sum_i w_i^2 M_i) h`` with ``M_i = a_i1^T a_i1 + a_i2^T a_i2`` (9 x 9),
+so every cell's solution is the eigenvector of the smallest eigenvalue of one weighted sum
+of the ``M_i``: one matrix product over all cells, then a batched ``eigh``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pis3r.errors import NotEnoughOverlapError
+from pis3r.io import to_uint8
+
+MIN_MATCHES = 12
+# Matches kept at most (the weighted sums cost cells x matches x 81).
+MAX_MATCHES = 3000
+# The canvas is at most this many times the reference's size (as pis3r's default).
+MAX_CANVAS_SCALE = 3.0
+
+
+@dataclass(frozen=True)
+class ApapResult:
+    """``image`` ``(H, W, 3)`` float32 canvas in the reference's frame; ``filled`` ``(H, W)``
+    bool; ``ref_offset`` ``(x, y)`` canvas pixel of the reference's pixel (0, 0);
+    ``global_homography`` ``(3, 3)`` reference px -> target px."""
+
+    image: np.ndarray
+    filled: np.ndarray
+    ref_offset: tuple[int, int]
+    global_homography: np.ndarray
+
+
+def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), outliers
+    removed with a MAGSAC fundamental matrix: it keeps matches off any single plane, which
+    APAP's local homographies need, and drops the wrong ones."""
+    sift = cv2.SIFT_create(nfeatures=6000)
+    kp_r, desc_r = sift.detectAndCompute(cv2.cvtColor(to_uint8(reference), cv2.COLOR_RGB2GRAY), None)
+    kp_t, desc_t = sift.detectAndCompute(cv2.cvtColor(to_uint8(target), cv2.COLOR_RGB2GRAY), None)
+    if desc_r is None or desc_t is None or len(kp_r) < 2 or len(kp_t) < 2:
+        raise NotEnoughOverlapError("APAP: no features")
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_r, desc_t, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    if len(good) < MIN_MATCHES:
+        raise NotEnoughOverlapError(f"APAP: {len(good)} matches")
+    pts_r = np.array([kp_r[m.queryIdx].pt for m in good], np.float64)
+    pts_t = np.array([kp_t[m.trainIdx].pt for m in good], np.float64)
+    threshold = max(1.0, 1e-3 * float(np.hypot(*reference.shape[:2])))
+    _, inliers = cv2.findFundamentalMat(pts_r, pts_t, cv2.USAC_MAGSAC, threshold, 0.999, 10000)
+    keep = inliers.ravel().astype(bool) if inliers is not None else np.zeros(len(pts_r), bool)
+    if keep.sum() < MIN_MATCHES:
+        raise NotEnoughOverlapError(f"APAP: {int(keep.sum())} consistent matches")
+    return pts_r[keep], pts_t[keep]
+
+
+def hartley_normalisation(points: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` similarity moving ``(N, 2)`` points to zero mean, mean distance sqrt(2)."""
+    centre = points.mean(axis=0)
+    scale = np.sqrt(2.0) / max(np.linalg.norm(points - centre, axis=1).mean(), 1e-12)
+    return np.array([[scale, 0.0, -scale * centre[0]], [0.0, scale, -scale * centre[1]], [0.0, 0.0, 1.0]])
+
+
+def dlt_blocks(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``M_i = a_i1^T a_i1 + a_i2^T a_i2`` ``(N, 9, 9)`` for ``dst ~ H src`` (normalised
+    ``(N, 2)`` points), where ``a_i1, a_i2`` are the two DLT rows of match ``i``."""
+    x, y = src[:, 0], src[:, 1]
+    u, v = dst[:, 0], dst[:, 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    row1 = np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], axis=1)
+    row2 = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], axis=1)
+    return row1[:, :, None] * row1[:, None, :] + row2[:, :, None] * row2[:, None, :]
+
+
+def smallest_eigenvectors(matrices: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors ``(B, 9)`` of the smallest eigenvalue of symmetric ``(B, 9, 9)``."""
+    _, vectors = np.linalg.eigh(matrices)
+    return vectors[:, :, 0]
+
+
+def moving_dlt(
+    pts_ref: np.ndarray, pts_tgt: np.ndarray, centres: np.ndarray, sigma: float, gamma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local homographies (reference px -> target px) ``(C, 3, 3)`` at ``centres`` ``(C, 2)``
+    (reference px) and the global one ``(3, 3)``, from matches ``(N, 2)``, ``(N, 2)``."""
+    T_ref, T_tgt = hartley_normalisation(pts_ref), hartley_normalisation(pts_tgt)
+    src = pts_ref @ T_ref[:2, :2].T + T_ref[:2, 2]
+    dst = pts_tgt @ T_tgt[:2, :2].T + T_tgt[:2, 2]
+    blocks = dlt_blocks(src, dst).reshape(len(src), 81)
+    denormalise = np.linalg.inv(T_tgt)
+
+    def to_pixels(h: np.ndarray) -> np.ndarray:
+        H = denormalise @ h.reshape(-1, 3, 3) @ T_ref
+        return H / H[:, 2:3, 2:3]
+
+    global_h = to_pixels(smallest_eigenvectors(blocks.sum(axis=0).reshape(1, 9, 9)))[0]
+    d2 = ((centres[:, None, :] - pts_ref[None, :, :]) ** 2).sum(axis=2)
+    weights = np.maximum(np.exp(-d2 / sigma**2), gamma)
+    # ||W A h||^2 weights each match's two rows by w_i^2.
+    local = smallest_eigenvectors((weights**2 @ blocks).reshape(-1, 9, 9))
+    return to_pixels(local), global_h
+
+
+def canvas_box(reference_shape: tuple[int, int], target_shape: tuple[int, int], H_ref_to_tgt: np.ndarray):
+    """``(x0, y0, width, height)`` in reference px of the box holding the reference and the
+    target's corners mapped into the reference frame, capped at ``MAX_CANVAS_SCALE``."""
+    h, w = reference_shape
+    th, tw = target_shape
+    corners = np.array([[0, 0], [tw - 1, 0], [tw - 1, th - 1], [0, th - 1]], np.float64)
+    mapped = cv2.perspectiveTransform(corners[None], np.linalg.inv(H_ref_to_tgt))[0]
+    # A corner behind the reference camera maps to the wrong side: the cap below handles it.
+    margin_x, margin_y = (MAX_CANVAS_SCALE - 1) * w / 2, (MAX_CANVAS_SCALE - 1) * h / 2
+    x0 = int(np.floor(np.clip(min(0, mapped[:, 0].min()), -margin_x, 0)))
+    y0 = int(np.floor(np.clip(min(0, mapped[:, 1].min()), -margin_y, 0)))
+    x1 = int(np.ceil(np.clip(max(w - 1, mapped[:, 0].max()), w - 1, w - 1 + margin_x)))
+    y1 = int(np.ceil(np.clip(max(h - 1, mapped[:, 1].max()), h - 1, h - 1 + margin_y)))
+    return x0, y0, x1 - x0 + 1, y1 - y0 + 1
+
+
+def feather(valid: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 blending weight: distance (px) to the nearest invalid pixel."""
+    padded = np.pad(valid.astype(np.uint8), 1)
+    return cv2.distanceTransform(padded, cv2.DIST_L2, 3)[1:-1, 1:-1].astype(np.float32)
+
+
+def apap_stitch(
+    reference: np.ndarray,
+    target: np.ndarray,
+    grid: int = 100,
+    sigma_fraction: float = 0.1,
+    gamma: float = 0.05,
+) -> ApapResult:
+    """Warp ``target`` ``(h2, w2, 3)`` onto the frame of ``reference`` ``(h, w, 3)`` with
+    moving DLT and feather-blend the two.
+
+    ``grid``: cells along the canvas's longer side. ``sigma_fraction``: the Gaussian's
+    ``sigma`` as a fraction of the reference's longer side. ``gamma``: weight floor.
+    Raises :class:`NotEnoughOverlapError` when the pair has too few consistent matches."""
+    pts_ref, pts_tgt = match_features(reference, target)
+    if len(pts_ref) > MAX_MATCHES:
+        keep = np.random.default_rng(0).choice(len(pts_ref), MAX_MATCHES, replace=False)
+        pts_ref, pts_tgt = pts_ref[keep], pts_tgt[keep]
+    h, w = reference.shape[:2]
+    sigma = sigma_fraction * max(h, w)
+    _, global_h = moving_dlt(pts_ref, pts_tgt, np.zeros((0, 2)), sigma, gamma)
+    x0, y0, width, height = canvas_box((h, w), target.shape[:2], global_h)
+
+    cell = int(np.ceil(max(width, height) / grid))
+    cols, rows = -(-width // cell), -(-height // cell)
+    cy, cx = np.mgrid[0:rows, 0:cols]
+    centres = np.stack([cx.ravel(), cy.ravel()], axis=1) * cell + (cell - 1) / 2.0 + (x0, y0)
+    local, global_h = moving_dlt(pts_ref, pts_tgt, centres, sigma, gamma)
+
+    # Every canvas pixel maps to the target through its cell's homography.
+    ys, xs = np.mgrid[0:height, 0:width]
+    H = local.astype(np.float32)[(ys // cell) * cols + xs // cell]
+    px, py = xs + x0, ys + y0
+    denom = H[..., 2, 0] * px + H[..., 2, 1] * py + H[..., 2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        map_x = ((H[..., 0, 0] * px + H[..., 0, 1] * py + H[..., 0, 2]) / denom).astype(np.float32)
+        map_y = ((H[..., 1, 0] * px + H[..., 1, 1] * py + H[..., 1, 2]) / denom).astype(np.float32)
+    # Points behind the target camera (denominator <= 0) do not map into it.
+    ahead = denom > 0
+    map_x[~ahead] = -1e6
+    map_y[~ahead] = -1e6
+    warped = cv2.remap(target.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    inside = cv2.remap(np.ones(target.shape[:2], np.float32), map_x, map_y, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT) >= 0.999
+
+    ref_canvas = np.zeros((height, width, 3), np.float32)
+    ref_valid = np.zeros((height, width), bool)
+    ref_canvas[-y0 : -y0 + h, -x0 : -x0 + w] = reference
+    ref_valid[-y0 : -y0 + h, -x0 : -x0 + w] = True
+    w_ref, w_tgt = feather(ref_valid), feather(inside)
+    total = np.maximum(w_ref + w_tgt, 1e-6)
+    image = (ref_canvas * w_ref[..., None] + warped * w_tgt[..., None]) / total[..., None]
+    return ApapResult(image.astype(np.float32), ref_valid | inside, (-x0, -y0), global_h)

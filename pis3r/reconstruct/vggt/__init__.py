@@ -1,0 +1,21 @@
+"""The project's own VGGT (facebook/VGGT-1B, checkpoint-exact) and its reconstruction backend.
+
+Importing this package registers the ``vggt`` backend and offers
+:func:`find_weights`, :func:`fetch_weights` and :func:`load_vggt`; the model classes
+(and torch) are imported only when first used, so ``auto`` backend resolution stays cheap.
+"""
+
+from __future__ import annotations
+
+from pis3r.reconstruct.vggt import backend as _backend  # noqa: F401  (registers "vggt")
+from pis3r.reconstruct.vggt.weights import WEIGHTS_ENV, fetch_weights, find_weights, load_vggt
+
+__all__ = ["VGGT", "WEIGHTS_ENV", "fetch_weights", "find_weights", "load_vggt"]
+
+
+def __getattr__(name: str):
+    if name == "VGGT":
+        from pis3r.reconstruct.vggt.model import VGGT
+
+        return VGGT
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
