@@ -172,7 +172,7 @@ def _apply_orientation(pixels: np.ndarray, exif: Image.Exif | None) -> np.ndarra
         4: lambda a: a[::-1],
         5: lambda a: np.transpose(a, (1, 0, 2)),
         6: lambda a: np.rot90(a, -1),
-        7: lambda a: np.rot90(a, 1)[::-1],
+        7: lambda a: np.transpose(a[::-1, ::-1], (1, 0, 2)),
         8: lambda a: np.rot90(a, 1),
     }
     op = ops.get(orientation)

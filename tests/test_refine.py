@@ -26,6 +26,15 @@ from pis3r.refine.unet import UNet
 T = 1000
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Small tensors on a shared 2-core machine: extra intra-op threads only spin."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def test_schedule_matches_spec_table_and_identities():
     """Spec §2.2 reference values, closed forms, abar_T = 1, bbar_T^2 = s, monotone."""
     columns = [999, 799, 599, 399, 199, 99, 0]
@@ -113,16 +122,12 @@ def test_unet_keeps_odd_sizes_and_starts_as_identity():
 
 def _toy_pair(size: int = 48) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``xin, x0 (1, 3, H, W)`` in [-1, 1] and ``c (1, 1, H, W)``: a smooth image with a
-    black hole (c = 0.5) and speckle, the defects the refiner exists for."""
+    black hole (c = 0.5), the defect the refiner exists for."""
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, size), torch.linspace(-1, 1, size), indexing="ij")
     x0 = torch.stack([0.8 * xx, 0.8 * yy, 0.5 * xx * yy])[None]
     c = torch.ones(1, 1, size, size)
     c[..., 10:26, 14:34] = 0.5
-    xin = torch.where(c == 0.5, -1.0, x0)
-    g = torch.Generator().manual_seed(0)
-    speckle = torch.rand(1, 1, size, size, generator=g) < 0.03
-    xin = torch.where(speckle, torch.rand(1, 3, size, size, generator=g) * 2 - 1, xin)
-    return xin, x0, c
+    return torch.where(c == 0.5, -1.0, x0), x0, c
 
 
 def test_tiny_model_overfits_one_pair():
@@ -131,7 +136,7 @@ def test_tiny_model_overfits_one_pair():
     xin, x0, c = _toy_pair()
     optimizer = torch.optim.AdamW(refiner.net.parameters(), lr=3e-3)
     losses = []
-    for _ in range(120):
+    for _ in range(100):
         t = torch.randint(0, T, (1,))
         loss, _, _ = training_loss(refiner, xin, x0, c, t, torch.randn(x0.shape))
         optimizer.zero_grad()
@@ -145,7 +150,7 @@ def _random_refiner(seed: int = 0):
     """A tiny refiner whose output is not trivially zero, weights already fp16-exact."""
     torch.manual_seed(seed)
     refiner = new_refiner(MODEL_PRESETS["tiny"], "pred_res_noise", noise_scale=0.01, train_size=48)
-    torch.nn.init.normal_(refiner.net.head.weight, std=0.05)
+    torch.nn.init.normal_(refiner.net.head.weight, std=0.2)
     with torch.no_grad():
         for p in refiner.net.parameters():
             p.copy_(p.half().float())
@@ -176,9 +181,10 @@ def test_saved_weights_reload_bit_for_bit(tmp_path):
     np.testing.assert_array_equal(refine_canvas(image, mask, "all", steps=2, weights=path), first)
 
 
-def _seam_score(image: np.ndarray, columns: list[int]) -> float:
-    """Mean colour jump across the given column borders, relative to the median jump."""
-    jumps = np.abs(np.diff(image, axis=1)).mean(axis=(0, 2))
+def _seam_score(change: np.ndarray, columns: list[int]) -> float:
+    """Largest mean jump of the refiner's change ``(H, W, 3)`` across the given column
+    borders, relative to the median jump between any two columns."""
+    jumps = np.abs(np.diff(change, axis=1)).mean(axis=(0, 2))
     return float(jumps[[c - 1 for c in columns]].max() / np.median(jumps))
 
 
@@ -190,9 +196,9 @@ def test_tiled_inference_has_no_visible_seams():
     borders = sorted({s for s in starts if s > 0} | {s + tile for s in starts if s + tile < 150})
     blended = refine_array(refiner, image, mask, steps=2, device="cpu", tile=tile, overlap=overlap)
     hard = refine_array(refiner, image, mask, steps=2, device="cpu", tile=tile, overlap=0)
-    assert _seam_score(blended, borders) < 2.0
+    assert _seam_score(blended - image, borders) < 1.6
     # The score does see seams: abutting tiles without blending show them.
-    assert _seam_score(hard, [s for s in tile_starts(150, tile, 0) if s > 0]) > _seam_score(blended, borders)
+    assert _seam_score(hard - image, [s for s in tile_starts(150, tile, 0) if s > 0]) > 1.8
 
 
 def test_tiles_blend_to_the_whole_canvas_prediction_for_a_local_net():

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.io import to_uint8
@@ -30,6 +31,9 @@ from pis3r.io import to_uint8
 MIN_MATCHES = 12
 # Matches kept at most (the weighted sums cost cells x matches x 81).
 MAX_MATCHES = 3000
+# A match moving farther than this share of the image diagonal from its neighbours' median
+# motion is a mismatch.
+COHERENCE_FRACTION = 0.02
 # The canvas is at most this many times the reference's size (as pis3r's default).
 MAX_CANVAS_SCALE = 3.0
 
@@ -47,9 +51,11 @@ class ApapResult:
 
 
 def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), outliers
-    removed with a MAGSAC fundamental matrix: it keeps matches off any single plane, which
-    APAP's local homographies need, and drops the wrong ones."""
+    """SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), cleaned
+    in two steps that both keep matches off any single plane (which APAP's local
+    homographies need): a MAGSAC fundamental matrix, then :func:`coherent_motion` for the
+    mismatches that happen to lie near their epipolar line (all of them, for a rotating
+    camera, whose fundamental matrix is undetermined)."""
     sift = cv2.SIFT_create(nfeatures=6000)
     kp_r, desc_r = sift.detectAndCompute(cv2.cvtColor(to_uint8(reference), cv2.COLOR_RGB2GRAY), None)
     kp_t, desc_t = sift.detectAndCompute(cv2.cvtColor(to_uint8(target), cv2.COLOR_RGB2GRAY), None)
@@ -64,9 +70,24 @@ def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8
     threshold = max(1.0, 1e-3 * float(np.hypot(*reference.shape[:2])))
     _, inliers = cv2.findFundamentalMat(pts_r, pts_t, cv2.USAC_MAGSAC, threshold, 0.999, 10000)
     keep = inliers.ravel().astype(bool) if inliers is not None else np.zeros(len(pts_r), bool)
+    pts_r, pts_t = pts_r[keep], pts_t[keep]
+    keep = coherent_motion(pts_r, pts_t, COHERENCE_FRACTION * float(np.hypot(*reference.shape[:2])))
     if keep.sum() < MIN_MATCHES:
         raise NotEnoughOverlapError(f"APAP: {int(keep.sum())} consistent matches")
     return pts_r[keep], pts_t[keep]
+
+
+def coherent_motion(pts_ref: np.ndarray, pts_tgt: np.ndarray, tolerance: float, neighbours: int = 8) -> np.ndarray:
+    """``(N,)`` bool: matches whose displacement lies within ``tolerance`` px of the median
+    displacement of their ``neighbours`` nearest matches in the reference. Image motion is
+    smooth except at depth edges, so a mismatch stands out from its neighbourhood."""
+    if len(pts_ref) <= neighbours:
+        return np.ones(len(pts_ref), bool)
+    motion = pts_tgt - pts_ref
+    # The nearest point of each query is the match itself: skip it.
+    _, nearest = cKDTree(pts_ref).query(pts_ref, k=neighbours + 1)
+    expected = np.median(motion[nearest[:, 1:]], axis=1)
+    return np.linalg.norm(motion - expected, axis=1) <= tolerance
 
 
 def hartley_normalisation(points: np.ndarray) -> np.ndarray:

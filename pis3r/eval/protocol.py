@@ -455,17 +455,37 @@ def score_placed(placed: Placed, case: Case, failed: bool = False, lpips_device:
     Returns ``{valid_psnr, valid_ssim, valid_lpips, fill_psnr, fill_ssim, fill_lpips,
     coverage, ext_psnr, ext_ssim, ext_lpips}`` (NaN where a region is empty)."""
     extension = ~case.reference_region
-    valid = np.ones_like(placed.filled) if failed else placed.filled
-    scores = {
-        **_quality(placed.image, case.gt, valid, "valid", lpips_device),
-        **_quality(placed.image, case.gt, extension & placed.filled, "fill", lpips_device),
-        **_quality(placed.image, case.gt, extension, "ext", lpips_device),
+    regions = {
+        "valid": np.ones_like(placed.filled) if failed else placed.filled,
+        "fill": extension & placed.filled,
+        "ext": extension,
     }
+    # Unfilled pixels are black in placed.image, so one LPIPS map serves every region.
+    distance = lpips_map(placed.image, case.gt, lpips_device)
+    scores = {}
+    for prefix, mask in regions.items():
+        scores.update(_quality(placed.image, case.gt, mask, distance, prefix))
     scores["coverage"] = float(metrics.coverage(placed.filled, extension)) if extension.any() else math.nan
     return scores
 
 
-def _quality(image: np.ndarray, gt: np.ndarray, mask: np.ndarray, prefix: str, lpips_device: str) -> dict:
+def lpips_map(image: np.ndarray, gt: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """``(H, W)`` LPIPS-Alex distance map of two ``(H, W, 3)`` images: the map whose mean
+    over a mask is ``metrics.lpips(image, gt, mask)``, computed once for several masks."""
+    import torch
+
+    from pis3r.eval.lpips import lpips_model
+
+    def to_tensor(array: np.ndarray) -> torch.Tensor:
+        pixels = torch.from_numpy(np.ascontiguousarray(array.transpose(2, 0, 1), dtype=np.float32))
+        return (pixels[None] * 2 - 1).to(device)
+
+    with torch.no_grad():
+        return lpips_model(str(device)).distance_map(to_tensor(image), to_tensor(gt))[0, 0].cpu().numpy()
+
+
+def _quality(image: np.ndarray, gt: np.ndarray, mask: np.ndarray, distance: np.ndarray, prefix: str) -> dict:
+    """PSNR, SSIM and LPIPS (mean of the ``distance`` map) over ``mask``, keys ``prefix_*``."""
     if not mask.any():
         return {f"{prefix}_psnr": math.nan, f"{prefix}_ssim": math.nan, f"{prefix}_lpips": math.nan}
     try:
@@ -475,7 +495,7 @@ def _quality(image: np.ndarray, gt: np.ndarray, mask: np.ndarray, prefix: str, l
     return {
         f"{prefix}_psnr": float(metrics.psnr(image, gt, mask=mask)),
         f"{prefix}_ssim": ssim,
-        f"{prefix}_lpips": float(metrics.lpips(image, gt, mask=mask, device=lpips_device)),
+        f"{prefix}_lpips": float(distance[mask].mean()),
     }
 
 

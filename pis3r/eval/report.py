@@ -18,7 +18,7 @@ import numpy as np
 
 from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS
 from pis3r.eval.runner import CASE_TASK, preview_path
-from pis3r.io import read_image, write_bytes, write_png
+from pis3r.io import read_image, to_uint8, write_bytes, write_png
 
 # Direction in which a column is better; the best value of a column is printed bold.
 HIGHER, LOWER = "max", "min"
@@ -240,7 +240,7 @@ def plot_quality_vs_parallax(rows: list[dict], path: Path) -> None:
 
 
 def contact_sheet(outdir: Path, case_name: str, methods: list[str]) -> np.ndarray | None:
-    """``(H, W, 3)`` sheet for one case: GT | reference | target | each method (a grey tile
+    """``(H, W, 3)`` uint8 sheet for one case: GT | reference | target | each method (a grey tile
     where a method produced nothing), each tile labelled. ``None`` without previews."""
     names = [("GT", "gt.png"), ("reference", "reference.png"), ("target", "target.png")]
     names += [(m, f"{m}.png") for m in methods]
@@ -254,11 +254,11 @@ def contact_sheet(outdir: Path, case_name: str, methods: list[str]) -> np.ndarra
     width = max(t.shape[1] for _, t in tiles if t is not None)
     row = []
     for label, tile in tiles:
-        canvas = np.full((height + 24, width, 3), 0.5 if tile is None else 1.0, np.float32)
+        canvas = np.full((height + 24, width, 3), 128 if tile is None else 255, np.uint8)
         if tile is not None:
-            canvas[24 : 24 + tile.shape[0], : tile.shape[1]] = tile
+            canvas[24 : 24 + tile.shape[0], : tile.shape[1]] = to_uint8(tile)
         cv2.putText(canvas, label if tile is not None else f"{label}: failed", (4, 17),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0.0, 0.0, 0.0), 1, cv2.LINE_AA)
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
         row.append(canvas)
     return np.concatenate(row, axis=1)
 

@@ -66,6 +66,8 @@ class ClassicalReconstructor:
         self.propagation = propagation
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
+        # The robust estimators are randomised; a fixed seed makes runs repeatable.
+        cv2.setRNGSeed(0)
         features = [detect(p.pixels) for p in photos]
         ref = photos[0]
         info: dict = {"backend": self.name, "warnings": []}
@@ -136,43 +138,29 @@ class ClassicalReconstructor:
             if model == "homography"
             else f"parallax level {parallax.level:.2f} %: full 3-D model"
         )
-        focal_other_known = self.options.focal or other.focal_px
-        if focal_ref is None:
-            if model == "homography":
+        fixed_focal = focal_ref is not None
+        if model == "3d":
+            starts = [focal_ref] if fixed_focal else geometry.focal_candidates(inliers, w, h)
+            fit = self._best_pose(inliers, starts, ref, other, refine_focal=not fixed_focal)
+            if fit is None:
+                model = "homography"
+                reason = "no essential matrix fits the matches; falling back to the homography model"
+                warnings.append(reason)
+            else:
+                R, t, K_ref, K_other = fit
+                if not fixed_focal:
+                    source = "self-calibrated (essential matrix + Sampson refinement)"
+                views = self._views_3d(ref, other, K_ref, K_other, R, t, H, inliers)
+        if model == "homography":
+            if not fixed_focal:
                 focal_ref = geometry.focal_from_homography(H, w, h)
                 source = "self-calibrated (rotation homography)"
-            else:
-                focal_ref, determined = geometry.focal_from_essential_inliers(inliers, w, h)
-                source = "self-calibrated (essential-matrix inliers)" if determined else None
-                focal_ref = focal_ref if determined else None
-            if focal_ref is None:
-                focal_ref = geometry.FALLBACK_FOCAL_FACTOR * max(w, h)
-                source = "fallback (1.2 x longest side: self-calibration was not determined)"
-                warnings.append("focal length could not be self-calibrated; using 1.2 x the longest side")
-        refine_focal = source.startswith("self-calibrated") or source.startswith("fallback")
-        focal_other = (
-            float(self.options.focal or other.focal_px)
-            if focal_other_known
-            else focal_ref * max(other.width, other.height) / max(w, h)
-        )
-        K_ref = intrinsics(focal_ref, w, h)
-        K_other = intrinsics(focal_other, other.width, other.height)
-
-        if model == "3d":
-            pose = geometry.essential_pose(inliers, K_ref, K_other, w, h)
-            if pose is None:
-                model = "homography"
-                reason = "essential matrix failed; falling back to the homography model"
-                warnings.append(reason)
-        if model == "3d":
-            R, t, _ = pose
-            R, t, K_ref, K_other = geometry.refine_pose(
-                inliers, R, t, K_ref, K_other, refine_focal and not focal_other_known
-            )
-            focal_ref = float(K_ref[0, 0])
-            used = inliers
-            views = self._views_3d(ref, other, K_ref, K_other, R, t, H, used)
-        else:
+                if focal_ref is None:
+                    focal_ref = geometry.FALLBACK_FOCAL_FACTOR * max(w, h)
+                    source = "fallback (1.2 x longest side: the rotation does not determine it)"
+                    warnings.append("focal length could not be self-calibrated; using 1.2 x the longest side")
+            K_ref = intrinsics(focal_ref, w, h)
+            K_other = intrinsics(self._other_focal(focal_ref, ref, other), other.width, other.height)
             views = self._views_homography(ref, other, K_ref, K_other, H, inliers)
         info = {
             "model": model,
@@ -183,7 +171,33 @@ class ClassicalReconstructor:
             "matches": matches,
             "warnings": warnings,
         }
-        return {"views": views, "info": info, "focal_ref": focal_ref, "focal_source": source}
+        return {"views": views, "info": info, "focal_ref": float(views[0].camera.K[0, 0]), "focal_source": source}
+
+    def _other_focal(self, focal_ref: float, ref: Photo, other: Photo) -> float:
+        """The second view's focal: its own flag/EXIF value, else the reference's
+        scaled to its size (same camera assumed)."""
+        if self.options.focal or other.focal_px:
+            return float(self.options.focal or other.focal_px)
+        return focal_ref * max(other.width, other.height) / max(ref.width, ref.height)
+
+    def _best_pose(self, inliers: Matches, starts: list[float], ref: Photo, other: Photo, refine_focal: bool):
+        """Essential-matrix pose + Sampson refinement from each starting focal; the
+        fit with the lowest robust cost wins. ``(R, t, K_ref, K_other)`` or None."""
+        w, h = ref.width, ref.height
+        shared = (w, h) == (other.width, other.height) and not (self.options.focal or other.focal_px)
+        best = None
+        for focal in starts:
+            K_ref = intrinsics(focal, w, h)
+            K_other = intrinsics(self._other_focal(focal, ref, other), other.width, other.height)
+            pose = geometry.essential_pose(inliers, K_ref, K_other, w, h)
+            if pose is None:
+                continue
+            *fit, cost = geometry.refine_pose(
+                inliers, pose[0], pose[1], K_ref, K_other, refine_focal, shared_focal=shared
+            )
+            if best is None or cost < best[1]:
+                best = (fit, cost)
+        return None if best is None else tuple(best[0])
 
     # -- depth: homography model ---------------------------------------------------------
     def _views_homography(self, ref: Photo, other: Photo, K_a, K_b, H, inliers: Matches):

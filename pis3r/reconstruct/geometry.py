@@ -70,33 +70,26 @@ def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | 
     return H, mask.ravel().astype(bool)
 
 
-def focal_from_essential_inliers(matches: Matches, width: int, height: int) -> tuple[float, bool]:
-    """Shared focal that lets an essential matrix explain the most matches.
+def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
+    """Starting focals for self-calibration, most plausible first.
 
     Scans f over typical lenses (0.5 to 3 x the longest side); for each, an essential
     matrix is fitted with MAGSAC++ at a fixed pixel threshold and its inliers are
-    counted. Near-ties (within 3 % of the best count) go to the f closest to the
-    prior ``FALLBACK_FOCAL_FACTOR``, since two views often determine f poorly.
-    Returns ``(focal, determined)``; ``determined`` is False when the inlier count is
-    flat over the whole range (then f is the prior).
+    counted. The candidates are the best-scoring focals and the prior
+    (``FALLBACK_FOCAL_FACTOR``); the caller refines each and keeps the best fit,
+    since two views often leave local minima along the focal.
     """
     side = max(width, height)
-    candidates = np.geomspace(0.5, 3.0, 13) * side
+    scan = np.geomspace(0.5, 3.0, 13) * side
     counts = []
-    for f in candidates:
+    for f in scan:
         K = intrinsics(f, width, height)
         na, nb = _normalised(K, matches.pts_a), _normalised(K, matches.pts_b)
         threshold = 1.0 * _pixel_scale(width, height) / f
         E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, threshold, 5000)
         counts.append(0 if E is None else int(mask.sum()))
-    counts = np.array(counts, float)
-    prior = FALLBACK_FOCAL_FACTOR * side
-    near_best = counts >= 0.97 * counts.max()
-    if near_best.all():
-        return prior, False
-    pick = np.flatnonzero(near_best)
-    best = pick[np.argmin(np.abs(np.log(candidates[pick] / prior)))]
-    return float(candidates[best]), True
+    ranked = [float(scan[i]) for i in np.argsort(-np.array(counts), kind="stable")[:3]]
+    return ranked + [FALLBACK_FOCAL_FACTOR * side]
 
 
 def focal_from_homography(H: np.ndarray, width: int, height: int) -> float | None:
@@ -165,16 +158,17 @@ def refine_pose(
     K_a: np.ndarray,
     K_b: np.ndarray,
     refine_focal: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    shared_focal: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """Minimise the robust Sampson error of all epipolar inliers over rotation,
-    translation direction and (optionally) one focal per view.
-
-    Two focals + pose have the 7 degrees of freedom of a fundamental matrix, so the
-    refined cameras reproduce the measured epipolar geometry exactly — what the
-    reprojection needs — even where two views determine f poorly. A weak log-normal
+    translation direction and (optionally) the focal: one shared by both views
+    (same camera: better conditioned) or one per view (two focals + pose have the
+    7 degrees of freedom of a fundamental matrix, so the cameras then reproduce any
+    measured epipolar geometry, as the reprojection needs). A weak log-normal
     prior holds each focal near its start. The result is put back on the right
     side of the twisted-pair ambiguity (points in front of both cameras), which
-    the Sampson error cannot see. Returns ``(R, t, K_a, K_b)``.
+    the Sampson error cannot see. Returns ``(R, t, K_a, K_b, cost)``, ``cost`` the
+    robust (soft-L1) Sampson cost of the result, comparable between starts.
     """
     scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
     t = t / np.linalg.norm(t)
@@ -186,10 +180,10 @@ def refine_pose(
         Ka, Kb = K_a.copy(), K_b.copy()
         if refine_focal:
             Ka[:2, :2] *= np.exp(p[5])
-            Kb[:2, :2] *= np.exp(p[6])
+            Kb[:2, :2] *= np.exp(p[-1])
         return Rm, tv, Ka, Kb
 
-    p0 = np.zeros(7 if refine_focal else 5)
+    p0 = np.zeros(5 + (0 if not refine_focal else 1 if shared_focal else 2))
     p0[3] = np.arccos(np.clip(t[2], -1, 1))
     p0[4] = np.arctan2(t[1], t[0])
 
@@ -199,7 +193,7 @@ def refine_pose(
         sampson = _sampson(F, matches.pts_a, matches.pts_b)
         if not refine_focal:
             return sampson
-        return np.append(sampson, 3.0 * scale * p[5:7])
+        return np.append(sampson, 3.0 * scale * p[5:])
 
     fit = least_squares(residuals, p0, loss="soft_l1", f_scale=scale, max_nfev=300)
     Rm, tv, Ka, Kb = unpack(fit.x)
@@ -209,7 +203,10 @@ def refine_pose(
     E = _skew(tv) @ Rm
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
     _, Rc, tc, _ = cv2.recoverPose(E, na, nb, np.eye(3))
-    return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb
+    F = np.linalg.inv(Kb).T @ E @ np.linalg.inv(Ka)
+    r = _sampson(F, matches.pts_a, matches.pts_b) / scale
+    cost = float(np.sum(2.0 * (np.sqrt(1.0 + r * r) - 1.0)))
+    return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, cost
 
 
 def plane_from_homography(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a: np.ndarray):
@@ -226,8 +223,9 @@ def plane_from_homography(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a
     for R, t, n in zip(Rs, ts, ns):
         n = n.ravel()
         t = t.ravel()
-        depth_a = 1.0 / (rays @ n)  # points on the plane n . X = 1
-        X_b = (rays * depth_a[:, None]) @ R.T + t
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth_a = 1.0 / (rays @ n)  # points on the plane n . X = 1
+            X_b = (rays * depth_a[:, None]) @ R.T + t
         score = float(np.mean((depth_a > 0) & (X_b[:, 2] > 0)))
         if score > best_score + 1e-9:
             best, best_score = (R, t, n), score

@@ -21,7 +21,7 @@ import click
 @click.option("--objective", type=click.Choice(["pred_res_noise", "pred_res", "pred_noise"]),
               default="pred_res_noise", show_default=True,
               help="What the UNet predicts: residual and noise (SM-Res-N), residual only (SM-Res), noise only.")
-@click.option("--noise-scale", type=click.FloatRange(min=0.0, min_open=True), default=0.01, show_default=True,
+@click.option("--noise-scale", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
               help="s = bbar_T^2, the noise variance at the start point x_T = xin + sqrt(s) z.")
 @click.option("--lr", type=click.FloatRange(min=0.0, min_open=True), default=2e-4, show_default=True)
 @click.option("--warmup", type=click.IntRange(1), default=500, show_default=True, help="Learning-rate warm-up steps.")
@@ -34,7 +34,10 @@ import click
 def train_refiner_command(out, steps, size, batch, device, resume, model, objective, noise_scale, lr, warmup,
                           pool_size, workers, threads, seed):  # fmt: skip
     """Train the refiner and write OUT (fp16 EMA weights) plus OUT's .train.pt checkpoint,
-    .loss.csv, .loss.png and .samples.png beside it."""
+    .loss.csv, .loss.png and .samples.png beside it.
+
+    The defaults are the spec's full-scale GPU recipe; the shipped weights were trained on
+    CPU with the command in pis3r/refine/weights/MODEL_CARD.md."""
     import os
 
     import torch
@@ -49,8 +52,7 @@ def train_refiner_command(out, steps, size, batch, device, resume, model, object
         workers = max(0, (os.cpu_count() or 1) - 1) if device == "cuda" else 0
     settings = TrainSettings(
         steps=steps, size=size, batch=batch, device=device, seed=seed, model=model, objective=objective,
-        noise_scale=noise_scale,
-        lr=lr, warmup=min(warmup, steps), pool_size=pool_size, workers=workers,
+        noise_scale=noise_scale, lr=lr, warmup=min(warmup, steps), pool_size=pool_size, workers=workers,
     )  # fmt: skip
     began = time.time()
     paths = train_refiner(out, settings, resume=resume, log=click.echo)

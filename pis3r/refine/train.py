@@ -53,7 +53,7 @@ class TrainSettings:
     seed: int = 0
     model: str = "rddm-s"
     objective: str = "pred_res_noise"
-    noise_scale: float = 0.01
+    noise_scale: float = 1.0
     lr: float = 2e-4
     min_lr: float = 1e-5
     warmup: int = 500

@@ -81,17 +81,47 @@ def _window(coords: torch.Tensor, ref_size: int, limit: int) -> tuple[int, int]:
     return start, start + limit
 
 
+def _match_gains(rgb, owner, ref_x, ref_y, ref_image: np.ndarray, ref_index: int) -> torch.Tensor:
+    """Scale each view's colours ``(N, 3)`` by the robust per-channel gain that maps
+    them onto the reference image at the pixels ``(ref_x, ref_y)`` where they land."""
+    h, w = ref_image.shape[:2]
+    inside = (ref_x >= 0) & (ref_x < w) & (ref_y >= 0) & (ref_y < h)
+    reference = torch.from_numpy(ref_image).to(rgb.device)
+    out = rgb.clone()
+    for view in torch.unique(owner).tolist():
+        if view == ref_index:
+            continue
+        mine = owner == view
+        pairs = mine & inside
+        if int(pairs.sum()) < 100:
+            continue
+        theirs = reference[ref_y[pairs], ref_x[pairs]]
+        ours = rgb[pairs]
+        # Saturated or black pixels carry no information about the gain.
+        usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(dim=1)
+        if int(usable.sum()) < 100:
+            continue
+        ratio = theirs[usable] / ours[usable]
+        gain = ratio.median(dim=0).values.clamp(0.5, 2.0)
+        out[mine] = (rgb[mine] * gain).clamp(0.0, 1.0)
+    return out
+
+
 def reproject_to_canvas(
     scene: Scene,
     ref_index: int = 0,
     max_canvas_scale: float = 3.0,
     device: str | torch.device = "cpu",
     min_confidence: float = 0.0,
+    match_exposure: bool = True,
 ) -> Canvas:
     """Z-buffer all points of ``scene`` into camera ``ref_index`` on a canvas that grows
     to hold them (capped at ``max_canvas_scale`` times the reference's size).
 
-    The reference's own pixels are copied verbatim into the canvas.
+    The reference's own pixels are copied verbatim into the canvas. With
+    ``match_exposure``, every other view's colours are scaled per channel by the gain
+    that matches them to the reference where they land inside it, so a different
+    exposure does not show as a frame around the reference.
     """
     device = torch.device(device)
     ref_view = scene.views[ref_index]
@@ -116,6 +146,10 @@ def reproject_to_canvas(
     dropped = int((~inside).sum())
     px, py, z, rgb, owner = px[inside], py[inside], z[inside], rgb[inside], owner[inside]
 
+    ox, oy = -x0, -y0
+    if match_exposure:
+        rgb = _match_gains(rgb, owner, px - ox, py - oy, ref_view.image, ref_index)
+
     flat = py * width + px
     zbuf = torch.full((height * width,), float("inf"), device=device)
     zbuf.scatter_reduce_(0, flat, z, reduce="amin")
@@ -136,7 +170,6 @@ def reproject_to_canvas(
     depth = zbuf.reshape(height, width).cpu().numpy()
     source = source.reshape(height, width).cpu().numpy()
 
-    ox, oy = -x0, -y0
     window = (slice(oy, oy + ref.height), slice(ox, ox + ref.width))
     image[window] = ref_view.image
     source[window] = ref_index

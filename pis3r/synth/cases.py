@@ -9,7 +9,8 @@ A case is drawn from a scene and a seed:
   ``ref.png`` is exactly its centre crop.
 - **target camera**, by parallax class (equal shares in datasets):
   ``rotation``: same centre (``t = 0`` exactly); ``slight``: baseline 0.5-2 % of the
-  reference view's near depth (its 25th depth percentile); ``large``: 25-80 % of it,
+  reference view's near depth (its 25th depth percentile: the median would often be the
+  far backdrop, which says little about parallax); ``large``: 25-80 % of it,
   i.e. comparable to the scene depth. Baselines are sideways or forward/backward
   (half each); the rotation is any up to 45 deg. The pose is redrawn until the target
   sees 30-80 % of the reference's pixels, shows at least 10 % of its own pixels in
@@ -20,7 +21,8 @@ Everything is expressed in the reference camera frame (reference ``R = I, t = 0`
 Parallax level (``ParallaxLevel``), measured on the full-resolution ground truth over
 the co-visible reference pixels (those whose scene point the target sees, unoccluded):
 
-- ``baseline_over_depth``: ``|c_tgt - c_ref|`` / median z of those points;
+- ``baseline_over_depth``: ``|c_tgt - c_ref|`` / near depth of those points (25th
+  percentile of their z in the reference);
 - ``max_parallax_px``: largest distance, in target pixels, between where those points
   land and where the pure-rotation homography ``K_tgt R K_ref^-1`` would put them
   (0 for a rotating camera);
@@ -34,7 +36,6 @@ from __future__ import annotations
 import io as _io
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence, Union
 
 import cv2
 import numpy as np
@@ -43,7 +44,7 @@ from pis3r.camera import Camera, intrinsics, relative_pose
 from pis3r.errors import Pis3rError
 from pis3r.io import write_bytes, write_json, write_png
 from pis3r.synth.render import NEAR, render, render_depth
-from pis3r.synth.scenes import Scene, demo_scene, make_scene
+from pis3r.synth.scenes import Scene, Seed, demo_scene, make_scene
 
 CLASSES = ("rotation", "slight", "large")
 BASELINE_RATIO = {"rotation": (0.0, 0.0), "slight": (0.005, 0.02), "large": (0.25, 0.8)}
@@ -51,9 +52,8 @@ OVERLAP_RANGE = (0.3, 0.8)
 MIN_EXTENSION = 0.1
 CLEARANCE_M = 1.0
 MAX_ROTATION_DEG = 45.0
+NEAR_PERCENTILE = 25  # "near depth" of a view: this percentile of its depths
 PROBE_WIDTH = 128  # low-resolution renders used while searching for a valid pose
-
-Seed = Union[int, Sequence[int], np.random.Generator]
 
 
 @dataclass(frozen=True)
@@ -97,8 +97,10 @@ class ParallaxLevel:
 class Case:
     """One stitching case. Images ``(h, w, 3)`` float32 in [0, 1]; depths ``(h, w)``
     float32 camera z. ``gt``/``gt_depth`` are on the GT canvas, ``ref``/``gt_depth_ref``
-    its centre crop, ``tgt``/``gt_depth_tgt`` the target's view. ``seed`` reproduces the
-    case (with the same scene); ``None`` when a generator was passed."""
+    its centre crop, ``tgt``/``gt_depth_tgt`` the target's view. ``ref_in_scene``: the
+    reference camera in the scene's frame (:func:`in_scene_frame` takes any camera of the
+    case there, to render more views). ``seed`` reproduces the case (with the same
+    scene); ``None`` when a generator was passed."""
 
     ref: np.ndarray
     tgt: np.ndarray
@@ -108,25 +110,44 @@ class Case:
     gt_depth_tgt: np.ndarray
     cameras: CaseCameras
     parallax: ParallaxLevel
+    ref_in_scene: Camera
     seed: int | list[int] | None
 
 
 @dataclass(frozen=True)
 class Transfer:
     """Where the pixels of a source depth map land in a destination camera:
-    ``uv (H, W, 2)`` destination pixels, ``z (H, W)`` destination depth, ``visible (H, W)``
-    in front, inside the destination image and (if its depth was given) unoccluded."""
+    ``uv (H, W, 2)`` destination pixels, ``z (H, W)`` destination depth, ``visible (H, W)``:
+    in front, inside the destination image (``0 <= u <= W-1``, ``0 <= v <= H-1``, so
+    bilinear sampling there is defined) and, if its depth was given, unoccluded."""
 
     uv: np.ndarray
     z: np.ndarray
     visible: np.ndarray
 
 
+def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Sample ``image (H, W[, C])`` at ``uv (N, 2)`` pixels inside ``[0, W-1] x [0, H-1]``."""
+    h, w = image.shape[:2]
+    x0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
+    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
+    if image.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
 def transfer(depth: np.ndarray, source: Camera, destination: Camera,
              destination_depth: np.ndarray | None = None, tolerance: float = 0.01) -> Transfer:
-    """Reproject a z-depth map ``(H, W)`` of ``source`` into ``destination``. A point counts as
-    unoccluded when ``destination_depth`` (sized to ``destination``) at its nearest pixel is
-    within ``tolerance`` (relative) of its depth: the z-buffer test of the destination view."""
+    """Reproject a z-depth map ``(H, W)`` of ``source`` into ``destination``.
+
+    Occlusion (when ``destination_depth``, sized to ``destination``, is given) is the
+    z-buffer test of the destination view: the point's inverse depth must be within
+    ``tolerance`` (relative) of the destination's inverse depth interpolated bilinearly
+    at ``uv``. Inverse depth is affine in the image on a plane, so the test is exact on
+    surfaces seen at grazing angles and rejects points next to depth edges."""
     R, t = relative_pose(source, destination)
     h, w = depth.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -138,11 +159,12 @@ def transfer(depth: np.ndarray, source: Camera, destination: Camera,
     z = uvw[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = uvw[..., :2] / z[..., None]
-        col, row = np.rint(uv[..., 0]), np.rint(uv[..., 1])
-        visible = finite & (z > NEAR) & (col >= 0) & (col < destination.width) & (row >= 0) & (row < destination.height)
+        visible = (finite & (z > NEAR) & (uv[..., 0] >= 0) & (uv[..., 0] <= destination.width - 1)
+                   & (uv[..., 1] >= 0) & (uv[..., 1] <= destination.height - 1))
     if destination_depth is not None:
-        seen = destination_depth[row[visible].astype(int), col[visible].astype(int)]
-        visible[visible] = np.abs(seen - z[visible]) <= tolerance * z[visible]
+        inverse = 1.0 / destination_depth.astype(np.float64)  # 0 where nothing was hit
+        seen = bilinear(inverse, uv[visible])
+        visible[visible] = np.abs(seen * z[visible] - 1.0) <= tolerance
     return Transfer(uv, z, visible)
 
 
@@ -168,8 +190,8 @@ def in_scene_frame(camera: Camera, ref_in_scene: Camera) -> Camera:
 
 def _reference_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tuple[int, int]) -> Camera:
     """The reference camera in the scene frame: within 1 m of ``scene.home``, yawed up to
-    25 deg, pitched -5..12 deg (slightly down, as people hold cameras), rolled up to 3 deg."""
-    orientation = rotation_matrix(rng.uniform(-25, 25), rng.uniform(-5, 12), rng.uniform(-3, 3))
+    25 deg, pitched -5..8 deg (mostly a little down, as people hold cameras), rolled up to 3 deg."""
+    orientation = rotation_matrix(rng.uniform(-25, 25), rng.uniform(-5, 8), rng.uniform(-3, 3))
     centre = scene.home + np.array([rng.uniform(-1, 1), rng.uniform(-0.3, 0.5), rng.uniform(-1, 1)])
     R = orientation.T
     return Camera(K, R, -R @ centre, *size)
@@ -179,7 +201,7 @@ def _target_pose(rng: np.random.Generator, parallax: str, near_depth: float,
                  ref: Camera) -> tuple[Camera, str]:
     """A target camera in the reference frame for a parallax class, and its motion kind."""
     while True:
-        orientation = rotation_matrix(rng.uniform(-45, 45), rng.uniform(-20, 20), rng.uniform(-15, 15))
+        orientation = rotation_matrix(rng.uniform(-45, 45), rng.uniform(-15, 15), rng.uniform(-10, 10))
         if rotation_angle_deg(orientation) <= MAX_ROTATION_DEG:
             break
     R = orientation.T
@@ -213,15 +235,15 @@ def _search_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tu
                  parallax: str, canvas_scale: float) -> tuple[Camera, Camera, str]:
     """Draw reference (scene frame) and target (reference frame) cameras until the pair
     meets the overlap, extension and clearance rules of the module docstring."""
+    ref = Camera.identity(K, *size)
+    gt, (mx, my) = gt_canvas(ref, canvas_scale)
     for _ in range(40):
         ref_scene = _reference_pose(rng, scene, K, size)
         ref_probe, ref_depth = _probe(scene, ref_scene)
         if ref_depth.min() < CLEARANCE_M:
             continue
-        ref = Camera.identity(K, *size)
-        gt, (mx, my) = gt_canvas(ref, canvas_scale)
         for _ in range(25):
-            tgt, motion = _target_pose(rng, parallax, float(np.percentile(ref_depth, 25)), ref)
+            tgt, motion = _target_pose(rng, parallax, float(np.percentile(ref_depth, NEAR_PERCENTILE)), ref)
             tgt_scene = in_scene_frame(tgt, ref_scene)
             if -tgt_scene.center[1] < CLEARANCE_M / 2:  # stay above the ground plane y = 0
                 continue
@@ -233,7 +255,7 @@ def _search_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tu
                 continue
             landing = transfer(tgt_depth, tgt_probe, in_scene_frame(gt, ref_scene))
             u, v = landing.uv[..., 0], landing.uv[..., 1]
-            inside_ref = (u >= mx - 0.5) & (u < mx + size[0] - 0.5) & (v >= my - 0.5) & (v < my + size[1] - 0.5)
+            inside_ref = (u >= mx) & (u <= mx + size[0] - 1) & (v >= my) & (v <= my + size[1] - 1)
             if (landing.visible & ~inside_ref).mean() >= MIN_EXTENSION:
                 return ref_scene, tgt, motion
     raise Pis3rError(f"could not place a {parallax}-parallax camera pair in this scene")
@@ -261,7 +283,7 @@ def measure_parallax(parallax: str, motion: str, ref: Camera, tgt: Camera, depth
         motion=motion,
         baseline_m=baseline,
         rotation_deg=rotation_angle_deg(R),
-        baseline_over_depth=baseline / float(np.median(depth_ref[co_visible])),
+        baseline_over_depth=baseline / float(np.percentile(depth_ref[co_visible], NEAR_PERCENTILE)),
         max_parallax_px=float(drift.max()),
         homography_residual_pct=float(np.percentile(residual, 90) / np.hypot(ref.width, ref.height) * 100),
         overlap=float(co_visible.mean()),
@@ -302,8 +324,16 @@ def make_case(seed: Seed, size: tuple[int, int] = (640, 480), parallax: str | No
         gt_depth_tgt=target.depth,
         cameras=CaseCameras(ref, gt, tgt, (mx, my)),
         parallax=measure_parallax(parallax, motion, ref, tgt, wide.depth[crop], target.depth),
-        seed=None if isinstance(seed, np.random.Generator) else (int(seed) if np.ndim(seed) == 0 else [int(s) for s in seed]),
+        ref_in_scene=ref_scene,
+        seed=_seed_record(seed),
     )
+
+
+def _seed_record(seed: Seed) -> int | list[int] | None:
+    """The seed as JSON can hold it; a Generator cannot be recorded."""
+    if isinstance(seed, np.random.Generator):
+        return None
+    return int(seed) if np.ndim(seed) == 0 else [int(s) for s in seed]
 
 
 def demo_pair(size: tuple[int, int] = (480, 360), seed: int = 0) -> Case:

@@ -8,8 +8,8 @@ image row 0). Depth is the camera-frame ``z`` written to a float32 colour attach
 exact per pixel centre, ``inf`` where no surface is hit.
 
 Colour is supersampled (render ``s`` times larger, average ``s x s`` blocks, the same
-as integrating each pixel's footprint) from trilinear-mipmapped textures, so images
-look like photographs rather than aliased renders. Anisotropic filtering is left off:
+as integrating each pixel's footprint) from trilinear-mipmapped textures and slightly
+blurred like a lens would, so images look like photographs rather than aliased renders. Anisotropic filtering is left off:
 on llvmpipe it costs 4-5x the render time, and supersampling already sharpens surfaces
 seen at grazing angles. One GL context per process; the last scene's geometry and
 textures stay uploaded.
@@ -29,6 +29,9 @@ from pis3r.errors import Pis3rError
 from pis3r.synth.scenes import Scene
 
 NEAR, FAR = 0.05, 5000.0  # metres; the backdrop is at most ~400 m from any camera
+# Real lenses do not resolve up to the pixel Nyquist limit; this slight blur makes the
+# renders look like photos and band-limits them, so reprojected GT matches closely.
+LENS_BLUR_PX = 0.5
 
 _VERTEX_SHADER = """
 #version 330
@@ -120,6 +123,11 @@ def gl_context():
     return ctx
 
 
+@functools.lru_cache(maxsize=1)
+def _program():
+    return gl_context().program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+
+
 class _Uploaded:
     """A scene's vertex buffer and texture array on the GL context."""
 
@@ -127,7 +135,7 @@ class _Uploaded:
         import moderngl
 
         ctx = gl_context()
-        self.program = ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+        self.program = _program()
         mesh = scene.mesh
         per_vertex = np.repeat(np.arange(mesh.triangles), 3)
         vertices = np.hstack(
@@ -144,23 +152,22 @@ class _Uploaded:
         self.textures.repeat_x = self.textures.repeat_y = False  # the shader mirrors
 
     def release(self) -> None:
-        for resource in (self.vao, self.buffer, self.textures, self.program):
+        for resource in (self.vao, self.buffer, self.textures):
             resource.release()
 
 
-_current: dict[str, object] = {"scene": None, "uploaded": None}
+_upload: tuple[weakref.ref, _Uploaded] | None = None  # the last scene rendered, kept on the GPU
 _targets: dict[tuple[int, int], object] = {}
 
 
 def _uploaded(scene: Scene) -> _Uploaded:
     """The GL resources of ``scene``, uploading it (and dropping the previous one) if needed."""
-    ref = _current["scene"]
-    if ref is None or ref() is not scene:
-        if _current["uploaded"] is not None:
-            _current["uploaded"].release()
-        _current["uploaded"] = _Uploaded(scene)
-        _current["scene"] = weakref.ref(scene)
-    return _current["uploaded"]
+    global _upload
+    if _upload is None or _upload[0]() is not scene:
+        if _upload is not None:
+            _upload[1].release()
+        _upload = (weakref.ref(scene), _Uploaded(scene))
+    return _upload[1]
 
 
 def _target(width: int, height: int):
@@ -202,8 +209,8 @@ def render_depth(scene: Scene, camera: Camera) -> np.ndarray:
 def render_colour(scene: Scene, camera: Camera) -> np.ndarray:
     """RGB ``(H, W, 3)`` float32 in [0, 1], one sample at each pixel centre (aliased)."""
     fbo = _draw(scene, camera, textured=True)
-    colour = np.frombuffer(fbo.read(components=4, attachment=0, dtype="f4"), np.float32)
-    return np.ascontiguousarray(colour.reshape(camera.height, camera.width, 4)[..., :3])
+    colour = np.frombuffer(fbo.read(components=3, attachment=0, dtype="f4"), np.float32)
+    return colour.reshape(camera.height, camera.width, 3)
 
 
 def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
@@ -212,8 +219,17 @@ def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)  # exact block mean for integer factors
 
 
-def render(scene: Scene, camera: Camera, supersample: int = 2) -> Rendering:
-    """Photo-like colour (``supersample**2`` samples per pixel, box-filtered) and exact
-    per-pixel-centre z of ``scene`` seen by ``camera``."""
-    fine = render_colour(scene, camera.scaled(supersample))
-    return Rendering(area_downsample(fine, supersample), render_depth(scene, camera))
+def render(scene: Scene, camera: Camera, supersample: int = 2, blur: float = LENS_BLUR_PX) -> Rendering:
+    """Photo-like colour and exact per-pixel-centre z of ``scene`` seen by ``camera``.
+
+    Colour: ``supersample**2`` samples per pixel, box-filtered (the sensor pixel), then a
+    Gaussian of ``blur`` pixels (the lens), computed on a margin so that border pixels see
+    the scene and not a padding rule.
+    """
+    pad = int(np.ceil(4 * blur))  # OpenCV's Gaussian kernel radius for float images
+    padded = camera.shifted(pad, pad, camera.width + 2 * pad, camera.height + 2 * pad)
+    colour = area_downsample(render_colour(scene, padded.scaled(supersample)), supersample)
+    if blur > 0:
+        colour = cv2.GaussianBlur(colour, (0, 0), blur)
+    colour = colour[pad : pad + camera.height, pad : pad + camera.width]
+    return Rendering(np.ascontiguousarray(colour), render_depth(scene, camera))

@@ -15,6 +15,7 @@ ground truth of a stitching case exact).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence, Union
 
 import numpy as np
 
@@ -30,6 +31,8 @@ from pis3r.synth.textures import (
 
 AMBIENT = 0.45
 UP = np.array([0.0, -1.0, 0.0])
+
+Seed = Union[int, Sequence[int], np.random.Generator]
 
 
 @dataclass(frozen=True)
@@ -162,11 +165,15 @@ class _Palette:
         self.layers += [Texture("flat", flat_texture(rng), "flat") for _ in range(2)]
         self.layers += [Texture("sky", sky_texture(rng), "sky"), Texture("landscape", landscape_texture(rng), "landscape")]
         self.rng = rng
+        self.used: set[int] = set()
 
     def pick(self, *kinds: str) -> tuple[int, np.ndarray]:
-        """A random layer of one of ``kinds`` and the tint to use it with."""
+        """A random layer of one of ``kinds`` (one not used yet while there is one, for
+        variety) and the tint to use it with."""
         options = [i for i, t in enumerate(self.layers) if t.kind in kinds]
+        options = [i for i in options if i not in self.used] or options
         layer = int(options[self.rng.integers(len(options))])
+        self.used.add(layer)
         kind = self.layers[layer].kind
         if kind == "material":  # grey photos of brick/grass/gravel: colour them
             tint = self.rng.uniform(0.45, 1.0, 3)
@@ -189,15 +196,13 @@ def _surroundings(palette: _Palette, rng: np.random.Generator) -> tuple[Mesh, li
     """Ground square and the far world: a cylindrical backdrop of radius 120-300 m (far
     hills, or a photo mural in one scene of four) up to 45 deg elevation, closed by a sky
     cap. Returns (ground, [backdrop])."""
-    radius = rng.uniform(120.0, 300.0)
+    r = rng.uniform(120.0, 300.0)
     layer, tint = palette.pick("material", "pattern")
-    tile = rng.uniform(1.5, 4.0)
-    r = radius
+    tile = rng.uniform(2.5, 6.0)
     ground = quad(np.array([[-r, 0, r], [r, 0, r], [r, 0, -r], [-r, 0, -r]]), (tile, tile), layer, tint)
     wall_layer, wall_tint = palette.pick("photo" if rng.random() < 0.25 else "landscape")
     sky_layer, _ = palette.pick("sky")
-    backdrop = cylinder((0.0, 0.0), radius, radius, 64, wall_layer, wall_tint, (radius, radius),
-                        cap_texture=sky_layer, cap_tile=radius)
+    backdrop = cylinder((0.0, 0.0), r, r, 64, wall_layer, wall_tint, (r, r), cap_texture=sky_layer, cap_tile=r)
     return ground, [backdrop]
 
 
@@ -212,11 +217,12 @@ def _placement(rng: np.random.Generator, near: float, far: float, extent: float,
     return (distance * np.sin(azimuth), distance * np.cos(azimuth)), yaw
 
 
-def make_scene(rng: np.random.Generator | int, extra_textures: tuple[Texture, ...] = ()) -> Scene:
+def make_scene(seed: Seed, extra_textures: tuple[Texture, ...] = ()) -> Scene:
     """A random outdoor-like scene: textured ground, 2-4 walls, 5-10 boxes, 3-8 poles,
-    0-2 stairs, 1-3 billboards between 2 and 45 m, some surfaces almost textureless,
-    inside a far backdrop and sky (see module docstring for the frame)."""
-    rng = np.random.default_rng(rng)
+    0-2 stairs, 1-3 billboards from 3 to about 50 m, some surfaces almost textureless,
+    inside a far backdrop and sky (see module docstring for the frame). ``seed``: int,
+    sequence of ints or numpy Generator; ``extra_textures``: more photos to draw from."""
+    rng = np.random.default_rng(seed)
     palette = _Palette(rng, extra_textures)
     ground, unlit = _surroundings(palette, rng)
     parts = [ground]
@@ -259,10 +265,10 @@ def make_scene(rng: np.random.Generator | int, extra_textures: tuple[Texture, ..
     return palette.scene(parts, unlit, home=np.array([0.0, -1.6, 0.0]))
 
 
-def demo_scene(rng: np.random.Generator | int) -> Scene:
+def demo_scene(seed: Seed) -> Scene:
     """A small scene for demos and analytic tests: three photo panels facing the viewpoint
     at about 3, 7 and 16 m, two boxes, textured ground, far backdrop and sky."""
-    rng = np.random.default_rng(rng)
+    rng = np.random.default_rng(seed)
     palette = _Palette(rng, ())
     ground, unlit = _surroundings(palette, rng)
     parts = [ground]

@@ -119,19 +119,24 @@ def _mix(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
     return a * (1.0 - weight[..., None]) + b * weight[..., None]
 
 
+def _two_shades(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random colour and a darker, slightly shifted shade of it (natural-looking pairs)."""
+    light = rng.uniform(0.25, 0.95, 3)
+    return light, np.clip(light * rng.uniform(0.35, 0.75) + rng.uniform(-0.08, 0.08, 3), 0.0, 1.0)
+
+
 def noise_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
-    """Two random colours blended by fractal noise (a stucco / terrain look)."""
-    a, b = rng.random(3), rng.random(3)
-    return to_uint8(_mix(a, b, periodic_noise(rng, size)))
+    """Two shades blended by fractal noise (a stucco / terrain look)."""
+    return to_uint8(_mix(*_two_shades(rng), periodic_noise(rng, size)))
 
 
 def checker_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:
-    """A checkerboard of 4..16 squares per side in two colours, with faint grain."""
+    """A checkerboard of 4..16 squares per side in two shades (tiles), with faint grain."""
     cells = int(rng.choice([4, 8, 16]))
     idx = np.arange(size) * cells // size
-    board = ((idx[:, None] + idx[None, :]) % 2).astype(float)
+    board = ((idx[:, None] + idx[None, :]) % 2).astype(np.float32)
     grain = 0.08 * (periodic_noise(rng, size, slope=0.5, lowest=32) - 0.5)
-    return to_uint8(_mix(rng.random(3), rng.random(3), board) + grain[..., None])
+    return to_uint8(_mix(*_two_shades(rng), board) + grain[..., None])
 
 
 def bricks_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarray:

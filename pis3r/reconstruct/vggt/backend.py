@@ -91,9 +91,10 @@ def view_from_prediction(
     depth: np.ndarray, depth_conf: np.ndarray, conf_threshold: float,
 ) -> View:
     """One photo's :class:`View` at its original resolution from model-input maps ``(H, W)``."""
+    fx, fy = K_model[0, 0], K_model[1, 1]
+    if not (np.all(np.isfinite(K_model)) and fx > 0 and fy > 0):
+        raise ReconstructionError(f"{photo.name}: VGGT predicted a degenerate camera (focal {fx:g}, {fy:g} px)")
     K = placement.intrinsics_to_photo(K_model)
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ReconstructionError(f"{photo.name}: VGGT predicted a degenerate camera (focal {K[0, 0]:g}, {K[1, 1]:g})")
     usable = np.isfinite(depth) & (depth > 0)
     depth_photo, seen = placement.to_photo(np.where(usable, depth, 0.0))
     usable_photo, _ = placement.to_photo(usable.astype(np.float32))

@@ -1,0 +1,22 @@
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("PIS3R_DEBUG", "")
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+REAL = SHARED / "data" / "real"
+
+
+def real_pairs() -> list[Path]:
+    """Pair folders (ref.*, tgt.*) of the development set, or [] without ../shared."""
+    if not REAL.is_dir():
+        return []
+    return sorted(p for p in REAL.iterdir() if p.is_dir() and list(p.glob("ref.*")) and list(p.glob("tgt.*")))
+
+
+needs_real_data = pytest.mark.skipif(
+    not REAL.is_dir(), reason=f"real image pairs not found at {REAL} (../shared is absent)"
+)

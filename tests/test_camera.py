@@ -1,0 +1,47 @@
+import numpy as np
+
+from pis3r.camera import Camera, fundamental_matrix, intrinsics
+from tests.analytic import rotation_y
+
+
+def test_project_unproject_round_trip():
+    cam = Camera(intrinsics(300, 64, 48), rotation_y(20), np.array([0.3, -0.1, 0.5]), 64, 48)
+    depth = np.random.default_rng(0).uniform(1, 5, (48, 64))
+    world = cam.unproject(depth)
+    uv, z = cam.project(world.reshape(-1, 3))
+    v, u = np.mgrid[0:48, 0:64]
+    np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], 1), atol=1e-9)
+    np.testing.assert_allclose(z, depth.ravel(), rtol=1e-12)
+
+
+def test_shifted_camera_moves_pixels_by_the_offset():
+    cam = Camera.identity(intrinsics(300, 64, 48), 64, 48)
+    canvas = cam.shifted(10, 7, 100, 80)
+    point = np.array([[0.2, -0.1, 2.0]])
+    np.testing.assert_allclose(canvas.project(point)[0], cam.project(point)[0] + [10, 7])
+    assert (canvas.width, canvas.height) == (100, 80)
+
+
+def test_scaled_camera_keeps_pixel_centres():
+    cam = Camera.identity(intrinsics(300, 64, 48), 64, 48)
+    half = cam.scaled(0.5)
+    point = np.array([[0.3, 0.2, 2.0]])
+    full_uv = cam.project(point)[0]
+    np.testing.assert_allclose(half.project(point)[0], (full_uv + 0.5) * 0.5 - 0.5)
+
+
+def test_fundamental_matrix_of_two_cameras():
+    a = Camera.identity(intrinsics(300, 64, 48), 64, 48)
+    b = Camera(intrinsics(320, 64, 48), rotation_y(10), np.array([-1.0, 0.1, 0.2]), 64, 48)
+    world = np.random.default_rng(1).uniform([-1, -1, 3], [1, 1, 6], (20, 3))
+    xa = np.hstack([a.project(world)[0], np.ones((20, 1))])
+    xb = np.hstack([b.project(world)[0], np.ones((20, 1))])
+    F = fundamental_matrix(a, b)
+    assert np.abs(np.sum(xb * (xa @ F.T), axis=1)).max() < 1e-9 * np.abs(F).max() * 1e4
+
+
+def test_dict_round_trip():
+    cam = Camera(intrinsics(300, 64, 48), rotation_y(5), np.array([1.0, 2, 3]), 64, 48)
+    back = Camera.from_dict(cam.to_dict())
+    np.testing.assert_array_equal(back.K, cam.K)
+    np.testing.assert_array_equal(back.t, cam.t)

@@ -1,0 +1,89 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pis3r.errors import InputError, NotEnoughOverlapError
+from pis3r.io import Photo
+from pis3r.reconstruct.base import ReconstructOptions
+from pis3r.reconstruct.classical import ClassicalReconstructor
+from tests.analytic import planes_scene, render, two_view_cameras
+
+
+@pytest.fixture(scope="module")
+def analytic_pair():
+    scene = planes_scene()
+    ref, tgt = two_view_cameras()
+    ref_img, ref_depth = render(scene, ref)
+    tgt_img, tgt_depth = render(scene, tgt)
+    return ref, tgt, ref_img, ref_depth, tgt_img, tgt_depth
+
+
+@pytest.fixture(scope="module")
+def reconstruction(analytic_pair):
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    return ClassicalReconstructor(ReconstructOptions()).reconstruct([Photo(ref_img, "ref"), Photo(tgt_img, "tgt")])
+
+
+def test_pose_and_self_calibrated_focal(analytic_pair, reconstruction):
+    ref, tgt = analytic_pair[:2]
+    camera = reconstruction.views[1].camera
+    rotation_error = np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ tgt.R.T).as_rotvec()))
+    direction = tgt.t / np.linalg.norm(tgt.t)
+    translation_error = np.degrees(np.arccos(np.clip(camera.t @ direction / np.linalg.norm(camera.t), -1, 1)))
+    assert reconstruction.info["model"] == "3d"
+    assert rotation_error < 1.0
+    assert translation_error < 3.0
+    assert reconstruction.info["focal_source"].startswith("self-calibrated")
+    assert reconstruction.views[0].camera.K[0, 0] == pytest.approx(ref.K[0, 0], rel=0.05)
+    np.testing.assert_array_equal(reconstruction.views[0].camera.R, np.eye(3))
+
+
+def test_depth_on_textured_pixels(analytic_pair, reconstruction):
+    _, _, _, ref_depth, _, tgt_depth = analytic_pair
+    for view, truth in zip(reconstruction.views, (ref_depth, tgt_depth)):
+        measured = (view.confidence > 0.5) & np.isfinite(truth) & (view.depth > 0)
+        assert measured.mean() > 0.03
+        scale = np.median(truth[measured] / view.depth[measured])  # two views fix depth up to scale
+        error = np.abs(view.depth[measured] * scale / truth[measured] - 1)
+        assert np.median(error) < 0.05
+        # Every pixel gets a depth (propagated where only this view sees the scene).
+        assert (view.depth > 0).mean() > 0.9
+
+
+def test_given_focal_is_used(analytic_pair):
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    scene = ClassicalReconstructor(ReconstructOptions(focal=400.0)).reconstruct(
+        [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
+    )
+    assert scene.info["focal_source"] == "flag"
+    assert scene.views[0].camera.K[0, 0] == 400.0
+
+
+def test_pure_rotation_uses_the_homography_model():
+    from skimage import data
+
+    from tests.analytic import rotation_y
+    from pis3r.camera import Camera, intrinsics
+
+    K = intrinsics(400, 400, 300)
+    wall = planes_scene()[:1]
+    ref = Camera.identity(K, 400, 300)
+    turned = Camera(K, rotation_y(15), np.zeros(3), 400, 300)
+    a, _ = render(wall, ref)
+    b, _ = render(wall, turned)
+    scene = ClassicalReconstructor(ReconstructOptions()).reconstruct([Photo(a, "a"), Photo(b, "b")])
+    assert scene.info["model"] == "homography"
+    np.testing.assert_allclose(scene.views[1].camera.t, 0)
+    angle = np.degrees(np.linalg.norm(Rotation.from_matrix(scene.views[1].camera.R @ turned.R.T).as_rotvec()))
+    assert angle < 1.0
+
+
+def test_identical_and_unrelated_images_are_refused():
+    from skimage import data
+
+    photo = Photo(data.astronaut().astype(np.float32) / 255, "a")
+    with pytest.raises(InputError, match="same image"):
+        ClassicalReconstructor(ReconstructOptions()).reconstruct([photo, Photo(photo.pixels.copy(), "b")])
+    noise = Photo(np.random.default_rng(0).uniform(0, 1, (300, 300, 3)).astype(np.float32), "noise")
+    with pytest.raises(NotEnoughOverlapError, match="do not overlap enough"):
+        ClassicalReconstructor(ReconstructOptions()).reconstruct([photo, noise])
