@@ -8,9 +8,10 @@ the calibrated scenes): reference = centre crop of ``ref``, target =
 (no registration). Prints one row per pair and the means per parallax class (from the
 folder's SOURCES.md). A pis3r failure is scored as an empty extension.
 
-Columns: ``cov`` share of the extension (GT outside the crop) filled; ``fill_*`` on the
-filled part of the extension; ``ext_*`` on the whole extension, unfilled = black (the issue
-2 bar); ``s`` seconds of pis3r itself.
+Columns: ``cov`` share of the extension (GT outside the crop) filled; ``PSNR SSIM LPIPS``
+the issue 2 bar: on the filled part of the extension, a failure scored as an empty
+extension; ``e*`` on the whole extension with unfilled pixels black (strict); ``s`` seconds
+of pis3r itself.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ import numpy as np
 from pis3r.eval.baselines import MethodFailure, run_method
 from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case, score_exact, score_failure
 
-COLUMNS = ("coverage", "fill_psnr", "fill_ssim", "fill_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
-HEADER = ("cov", "fPSNR", "fSSIM", "fLPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
+COLUMNS = ("coverage", "bar_psnr", "bar_ssim", "bar_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
+HEADER = ("cov", "PSNR", "SSIM", "LPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
 

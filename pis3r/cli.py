@@ -143,8 +143,13 @@ def fetch_weights_command(model):
     click.echo(str(fetch_weights()))
 
 
-from pis3r.refine.command import train_refiner_command; main.add_command(train_refiner_command)  # noqa: E402,E702
-from pis3r.eval.command import eval_command; main.add_command(eval_command)  # noqa: E402,E702
+# Commands whose implementation lives with their stage.
+from pis3r.eval.command import eval_command  # noqa: E402
+from pis3r.refine.command import train_refiner_command  # noqa: E402
+from pis3r.synth.command import synth_command  # noqa: E402
+
+for _command in (synth_command, eval_command, train_refiner_command):
+    main.add_command(_command)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -134,11 +134,16 @@ def read_image(source: ImageLike, name: str | None = None) -> Photo:
                     f"(limit {MAX_DECODE_PIXELS // 1_000_000} MP)"
                 )
             exif = probe.getexif()
-    except (UnidentifiedImageError, OSError, Image.DecompressionBombError, ValueError):
+    except Image.DecompressionBombError:
+        raise InputError(f"{path}: image is too large to decode safely") from None
+    except (UnidentifiedImageError, OSError, ValueError):
         exif = None
-    decoded = cv2.imdecode(
-        np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
-    )
+    try:
+        decoded = cv2.imdecode(
+            np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
+        )
+    except cv2.error:
+        raise InputError(f"{path}: not a readable image (too large or corrupt)") from None
     if decoded is None:
         try:
             with Image.open(_io.BytesIO(data)) as img:
@@ -195,6 +200,8 @@ def _atomic_write(path: Path, write) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             write(handle)
+        # mkstemp creates owner-only files; give the result the usual permissions.
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)

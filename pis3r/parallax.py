@@ -8,12 +8,20 @@ camera (or a planar scene): P_L ~ 0. Parallax shows up as residuals that grow wi
 the depth range and the baseline. The fraction of epipolar inliers the homography
 explains (``h_fraction``) is reported too.
 
-Classes (thresholds calibrated on synthetic pairs with known baseline/depth, then
-checked on the real pairs of the development set):
+Classes and how the thresholds were set:
 
-- ``rotation``:  P_L < ROTATION_MAX
-- ``slight``:    P_L < SLIGHT_MAX
+- ``rotation``:  P_L < ROTATION_MAX (0.28)
+- ``slight``:    P_L < SLIGHT_MAX (1.0)
 - ``large``:     otherwise (very large parallax)
+
+On exact synthetic rotations (``pis3r synth``, t = 0) P_L measures 0.05–0.14: that
+is the estimator's noise floor (feature localisation); on the real pure-rotation
+pairs of the development set it is 0.08–0.27 (JPEG, lens distortion). ROTATION_MAX
+sits just above both. Synthetic very-large pairs measure 1.5–47, real ones 2.2–23,
+real slight pairs 0.3–0.6: SLIGHT_MAX = 1.0 separates them. (Synthetic "slight"
+pairs have a true homography residual of 0.1–0.6 %, partly inside the noise floor,
+so a slight pair close to a rotation is called a rotation, which is also what the
+stitcher should do with it.)
 """
 
 from __future__ import annotations
@@ -26,8 +34,8 @@ import numpy as np
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import Matches, match_images
 
-ROTATION_MAX = 0.35
-SLIGHT_MAX = 1.6
+ROTATION_MAX = 0.28
+SLIGHT_MAX = 1.0
 MIN_MATCHES = 12
 
 LABELS = {"rotation": "pure rotation", "slight": "slight parallax", "large": "very large parallax"}

@@ -50,7 +50,7 @@ def test_eval_command_end_to_end_and_resume(tmp_path):
     assert sorted((r["case"], r["method"]) for r in rows) == [
         ("left", "apap"), ("left", "opencv"), ("right", "apap"), ("right", "opencv")]
     apap = [r for r in rows if r["method"] == "apap"]
-    assert all(r["registered"] == "True" and float(r["ext_psnr"]) > 15 for r in apap)
+    assert all(r["registered"] == "True" and float(r["fill_psnr"]) > 30 for r in apap)
     markdown = (report / "report.md").read_text()
     assert "Table 3 layout" in markdown and "| apap |" in markdown and "RSR" in markdown
     assert (report / "quality_vs_parallax.png").stat().st_size > 0

@@ -4,7 +4,6 @@ placement, failures, APAP on a pure rotation, Sampson error on exact cameras."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -30,8 +29,8 @@ from pis3r.eval.protocol import (
     score_registered,
 )
 from pis3r.eval.report import TABLE3, mean_of
+from tests.conftest import REAL, needs_real_data
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 GT_SIZE = (240, 180)
 FOCAL = 220.0
 
@@ -123,6 +122,8 @@ def test_failure_counts_against_rsr_and_scores_an_empty_extension():
     assert failed["coverage"] == 0 and math.isnan(failed["fill_psnr"])
     assert failed == {**score_failure(case), **{k: failed[k] for k in ("registered", "reg_inliers", "reg_reason")}}
     good = score_registered(case.gt, case)
+    # Issue 2's bar: the filled extension for a result, the empty extension for a failure.
+    assert failed["bar_psnr"] == failed["ext_psnr"] and good["bar_psnr"] == good["fill_psnr"]
     rsr = next(c for c in TABLE3 if c.key == "registered")
     assert mean_of([good, failed], rsr) == 0.5
     psnr_registered_only = next(c for c in TABLE3 if c.key == "valid_psnr" and c.rows == "registered")
@@ -198,7 +199,7 @@ def test_parallax_classes_from_sources_table(tmp_path):
     assert parallax_classes_from_sources(sources) == {"a": "rotation", "b": "slight", "c": "large", "d": "unknown"}
 
 
-@pytest.mark.skipif(not REAL.is_dir(), reason="../shared/data/real is not here")
+@needs_real_data
 def test_real_dataset_cases_and_calibration():
     specs = {s.name: s for s in discover_cases(REAL)}
     assert specs["sgla-9"].parallax_class == "large" and specs["spw-31"].parallax_class == "rotation"

@@ -85,7 +85,8 @@ def test_a_small_quad_lands_where_K_x_over_z_says_to_a_tenth_of_a_pixel():
     point = np.array([0.37, -0.21, 4.3])
     # A square parallel to the image plane: its image is a square centred on the point's projection.
     right, down = camera.R[0] * 0.15, camera.R[1] * 0.15  # about 10 px wide
-    world = white_quad(np.array([point - right - down, point + right - down, point + right + down, point - right + down]))
+    world = white_quad(np.array([point - right - down, point + right - down, point + right + down,
+                                 point - right + down]))
     image = render(world, camera, supersample=8)  # coverage known to 1/64 of a pixel
     weight = image.image[..., 0]
     v, u = np.mgrid[0 : camera.height, 0 : camera.width]

@@ -13,11 +13,15 @@ Methods: ``pis3r`` (classical backend), ``opencv`` (``cv2.Stitcher`` PANORAMA),
 
 from __future__ import annotations
 
-import functools
-import multiprocessing
+import atexit
+import json
+import os
+import select
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -156,33 +160,95 @@ def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: fl
 
 def _launch(name: str, threads: int, geometry: bool, inputs: Path, output: Path, error: Path, timeout: float
             ) -> int | None:
-    """Run :func:`_child` in a new process; its exit code, or ``None`` after a timeout (killed).
-
-    Forked from a forkserver that has imported pis3r once (a fresh interpreter spends ~5 s
-    importing torch). Daemonic processes (e.g. dask workers under a nanny) may not have
-    multiprocessing children, so there a fresh interpreter is started instead."""
-    args = (name, str(threads), str(int(geometry)), str(inputs), str(output), str(error))
-    if multiprocessing.current_process().daemon:
-        try:
-            return subprocess.run([sys.executable, "-m", "pis3r.eval.baselines", *args], timeout=timeout,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode
-        except subprocess.TimeoutExpired:
-            return None
-    process = _forkserver().Process(target=_child, args=args)
-    process.start()
-    process.join(timeout)
-    if process.is_alive():
-        process.kill()
-        process.join()
-        return None
-    return process.exitcode
+    """Run :func:`_child` in a new process; its exit code, or ``None`` after a timeout (killed)."""
+    args = [name, str(threads), str(int(geometry)), str(inputs), str(output), str(error)]
+    return _server().run(args, timeout)
 
 
-@functools.cache
-def _forkserver():
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["pis3r.eval.baselines"])
-    return context
+class _ForkServer:
+    """A long-lived ``python -m pis3r.eval.baselines --serve`` that forks one child per run.
+
+    A fresh interpreter spends seconds importing torch; the server imports pis3r once and
+    never computes anything itself, so forking it is cheap and safe (no threads, no
+    OpenMP state to inherit). Unlike multiprocessing's forkserver it does not re-import the
+    caller's ``__main__``, and it works inside daemonic processes (dask workers).
+    Protocol on its stdin / stdout, one line each: the child's arguments as JSON in; the
+    child's pid, then its exit code out."""
+
+    def __init__(self) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pis3r.eval.baselines", "--serve"],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0,
+        )
+        self.pending = b""
+        self.lock = threading.Lock()
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def run(self, args: list[str], timeout: float) -> int | None:
+        with self.lock:
+            self.process.stdin.write((json.dumps(args) + "\n").encode())
+            pid = int(self._read_line(None))
+            line = self._read_line(timeout)
+            if line is None:
+                os.kill(pid, signal.SIGKILL)
+                self._read_line(None)  # the server reports the killed child's status
+                return None
+            return int(line)
+
+    def _read_line(self, timeout: float | None) -> str | None:
+        """The next line from the server; ``None`` if none came within ``timeout`` s."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while b"\n" not in self.pending:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not select.select([self.process.stdout], [], [], wait)[0]:
+                return None
+            chunk = os.read(self.process.stdout.fileno(), 4096)
+            if not chunk:
+                raise MethodFailure("the method server died")
+            self.pending += chunk
+        line, self.pending = self.pending.split(b"\n", 1)
+        return line.decode()
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait()
+
+
+_SERVERS: list[_ForkServer] = []
+
+
+def _server() -> _ForkServer:
+    """This process's fork server, started on first use (and again if it died)."""
+    if _SERVERS and not _SERVERS[0].alive():
+        _SERVERS.pop()
+    if not _SERVERS:
+        _SERVERS.append(_ForkServer())
+        atexit.register(_SERVERS[0].close)
+    return _SERVERS[0]
+
+
+def _serve() -> int:
+    """The fork server's loop (see :class:`_ForkServer`)."""
+    for line in sys.stdin.buffer:
+        pid = os.fork()
+        if pid == 0:
+            # The child must not write into the protocol pipe (peers print).
+            devnull = os.open(os.devnull, os.O_RDWR)
+            for fd in (0, 1, 2):
+                os.dup2(devnull, fd)
+            code = 1
+            try:
+                code = _child(*json.loads(line))
+            finally:
+                os._exit(code)
+        sys.stdout.write(f"{pid}\n")
+        sys.stdout.flush()
+        _, status = os.waitpid(pid, 0)
+        sys.stdout.write(f"{os.waitstatus_to_exitcode(status)}\n")
+        sys.stdout.flush()
+    return 0
 
 
 def _pack(output: MethodOutput) -> dict:
@@ -230,4 +296,4 @@ def _child(name: str, threads: str, geometry: str, inputs: str, output: str, err
 
 
 if __name__ == "__main__":
-    sys.exit(_child(*sys.argv[1:7]))
+    sys.exit(_serve())

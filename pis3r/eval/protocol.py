@@ -19,11 +19,14 @@ Scores (all on the GT grid; a method's "filled" pixels are those it produced any
   filled it;
 - ``coverage``: share of the extension the method filled — a method must not win by filling
   nothing;
-- ``ext_psnr/ssim/lpips``: the whole extension with unfilled pixels black ("failures scored
-  as an empty extension").
+- ``ext_psnr/ssim/lpips``: the whole extension with unfilled pixels black (strict: what a
+  method leaves out counts as black);
+- ``bar_psnr/ssim/lpips``: issue 2's bar — "extension region only, failures scored as an
+  empty extension": ``fill_*`` for a result, ``ext_*`` of the empty result for a failure.
 
 A failure is scored as an empty result: the padded reference alone, valid everywhere, so
-its ``valid_*`` and ``ext_*`` scores count black wherever the GT extends the reference.
+its ``valid_*``, ``ext_*`` and ``bar_*`` scores count black wherever the GT extends the
+reference.
 """
 
 from __future__ import annotations
@@ -452,8 +455,8 @@ def score_placed(placed: Placed, case: Case, failed: bool = False, lpips_device:
 
     ``failed``: the result stands for a failure, so ``valid_*`` are taken over the whole GT
     frame (black where nothing was filled) instead of over the filled pixels.
-    Returns ``{valid_psnr, valid_ssim, valid_lpips, fill_psnr, fill_ssim, fill_lpips,
-    coverage, ext_psnr, ext_ssim, ext_lpips}`` (NaN where a region is empty)."""
+    Returns ``{valid_*, fill_*, ext_*, bar_*, coverage}`` with ``* = psnr, ssim, lpips``
+    (NaN where a region is empty)."""
     extension = ~case.reference_region
     regions = {
         "valid": np.ones_like(placed.filled) if failed else placed.filled,
@@ -465,6 +468,8 @@ def score_placed(placed: Placed, case: Case, failed: bool = False, lpips_device:
     scores = {}
     for prefix, mask in regions.items():
         scores.update(_quality(placed.image, case.gt, mask, distance, prefix))
+    bar = "ext" if failed else "fill"
+    scores.update({f"bar_{metric}": scores[f"{bar}_{metric}"] for metric in ("psnr", "ssim", "lpips")})
     scores["coverage"] = float(metrics.coverage(placed.filled, extension)) if extension.any() else math.nan
     return scores
 

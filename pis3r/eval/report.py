@@ -46,13 +46,13 @@ TABLE3 = (
     Column("LPIPS ↓ (reg.)", "valid_lpips", LOWER, "registered"),
 )
 EXTENSION = (
-    Column("ext PSNR ↑", "ext_psnr", HIGHER),
-    Column("ext SSIM ↑", "ext_ssim", HIGHER),
-    Column("ext LPIPS ↓", "ext_lpips", LOWER),
+    Column("PSNR ↑", "bar_psnr", HIGHER),
+    Column("SSIM ↑", "bar_ssim", HIGHER),
+    Column("LPIPS ↓", "bar_lpips", LOWER),
     Column("coverage ↑", "coverage", HIGHER, fmt="{:.1%}"),
-    Column("filled PSNR ↑", "fill_psnr", HIGHER),
-    Column("filled SSIM ↑", "fill_ssim", HIGHER),
-    Column("filled LPIPS ↓", "fill_lpips", LOWER),
+    Column("strict PSNR ↑", "ext_psnr", HIGHER),
+    Column("strict SSIM ↑", "ext_ssim", HIGHER),
+    Column("strict LPIPS ↓", "ext_lpips", LOWER),
     Column("RSR ↑", "registered", HIGHER, fmt="{:.1%}"),
     Column("s / pair ↓", "seconds", LOWER, fmt="{:.1f}"),
 )
@@ -131,8 +131,9 @@ def render_markdown(rows: list[dict], title: str) -> str:
             "method's canvas is registered to it with one SIFT + MAGSAC homography (the same for every method) "
             "and scored on its valid pixels. A crash, timeout, refusal or failed registration is a registration "
             "failure (RSR) and is scored as an empty result (the padded reference, black elsewhere). "
-            "*ext* columns: GT outside the reference only, unfilled pixels black; *filled*: the part of it the "
-            "method filled; *coverage*: share of it filled.",
+            "Extension tables: GT outside the reference only. PSNR / SSIM / LPIPS there on the pixels the "
+            "method filled, a failure scored as an empty extension (issue 2's bar); *coverage*: share of "
+            "the extension filled; *strict*: the whole extension with unfilled pixels black.",
             "",
         ]
     for dataset in sorted({r["dataset"] for r in method_rows}):
@@ -167,7 +168,7 @@ def render_markdown(rows: list[dict], title: str) -> str:
 
 
 def _per_case_table(rows: list[dict], ground_truth: bool) -> list[str]:
-    keys = ("ext_psnr", "ext_ssim", "ext_lpips", "coverage", "valid_psnr") if ground_truth else ("piqe", "niqe")
+    keys = ("bar_psnr", "bar_ssim", "bar_lpips", "coverage", "ext_psnr", "valid_psnr") if ground_truth else ("piqe", "niqe")
     lines = ["| case | class | method | " + " | ".join(keys) + " | registered | s | note |",
              "|---|---|---|" + "---:|" * len(keys) + "---|---:|---|"]
     for r in rows:
@@ -204,8 +205,9 @@ def plot_level(case_row: dict) -> float:
 
 
 def plot_quality_vs_parallax(rows: list[dict], path: Path) -> None:
-    """``quality_vs_parallax.png``: extension PSNR / SSIM / LPIPS against the parallax level,
-    one colour per method: each case a dot, the mean per level bin a line."""
+    """``quality_vs_parallax.png``: extension PSNR / SSIM / LPIPS (issue 2's bar: filled
+    pixels, failures as an empty extension) against the parallax level, one colour per
+    method: each case a dot, the mean per level bin a line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -215,7 +217,7 @@ def plot_quality_vs_parallax(rows: list[dict], path: Path) -> None:
     finite_levels = [v for v in levels.values() if math.isfinite(v)]
     edges = np.quantile(finite_levels, np.linspace(0, 1, 6)) if finite_levels else np.array([0.0, 1.0])
     figure, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for key, name, axis in zip(("ext_psnr", "ext_ssim", "ext_lpips"), ("PSNR (dB)", "SSIM", "LPIPS"), axes):
+    for key, name, axis in zip(("bar_psnr", "bar_ssim", "bar_lpips"), ("PSNR (dB)", "SSIM", "LPIPS"), axes):
         for index, method in enumerate(_methods(rows)):
             points = np.array([(levels.get(r["case"], math.nan), r.get(key, math.nan)) for r in rows
                                if r["method"] == method], float).reshape(-1, 2)
@@ -231,7 +233,8 @@ def plot_quality_vs_parallax(rows: list[dict], path: Path) -> None:
         axis.set_ylabel(f"extension {name}")
         axis.grid(alpha=0.3)
     axes[0].legend()
-    figure.suptitle("Quality of the extension (GT outside the reference, failures as empty) against parallax")
+    figure.suptitle("Quality of the extension (GT outside the reference; a failure = an empty extension) "
+                    "against parallax")
     figure.tight_layout()
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=110)
@@ -270,7 +273,7 @@ def write_report(rows: list[dict], outdir: str | Path, title: str = "pis3r evalu
     written = [outdir / "report.md", outdir / "report.csv"]
     write_bytes(written[0], (render_markdown(rows, title) + "\n").encode())
     write_csv(rows, written[1])
-    if any("ext_psnr" in r for r in rows):
+    if any("bar_psnr" in r for r in rows):
         written.append(outdir / "quality_vs_parallax.png")
         plot_quality_vs_parallax(rows, written[-1])
     methods = _methods(rows)

@@ -218,7 +218,6 @@ def run_evaluation(
     ``workers``: processes of the local dask cluster (on 127.0.0.1); ``scheduler``: address
     of an existing cluster instead. Returns all rows (cached and new) and one line per task
     that raised an error of the evaluation itself."""
-    import dask
     from dask.distributed import Client, LocalCluster, as_completed
     from tqdm import tqdm
 
@@ -235,23 +234,20 @@ def run_evaluation(
     ]
     errors = []
     if todo:
-        # Workers run methods in child processes, which daemonic processes may not have.
-        with dask.config.set({"distributed.worker.daemon": False}):
-            cluster = None if scheduler else LocalCluster(
-                n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
-                dashboard_address=None,
-            )
-            with Client(scheduler or cluster) as client:
-                futures = {client.submit(_task, spec, method, config, pure=False): (spec.name, method)
-                           for spec, method in todo}
-                with tqdm(total=len(futures), desc="pis3r eval", unit="run", disable=not progress) as bar:
-                    for future in as_completed(futures):
-                        case_name, method = futures[future]
-                        try:
-                            _save(outdir, future.result())
-                        except Exception as exc:  # an evaluation bug must not lose the other results
-                            errors.append(f"{case_name} / {method}: {exc.__class__.__name__}: {exc}")
-                        bar.update()
-            if cluster is not None:
-                cluster.close()
+        cluster = None if scheduler else LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+        )
+        with Client(scheduler or cluster) as client:
+            futures = {client.submit(_task, spec, method, config, pure=False): (spec.name, method)
+                       for spec, method in todo}
+            with tqdm(total=len(futures), desc="pis3r eval", unit="run", disable=not progress) as bar:
+                for future in as_completed(futures):
+                    case_name, method = futures[future]
+                    try:
+                        _save(outdir, future.result())
+                    except Exception as exc:  # an evaluation bug must not lose the other results
+                        errors.append(f"{case_name} / {method}: {exc.__class__.__name__}: {exc}")
+                    bar.update()
+        if cluster is not None:
+            cluster.close()
     return load_results(outdir), errors

@@ -38,6 +38,8 @@ WORK_MAX_SIDE = 640
 DEPTH_EDGE_JUMP = 0.08
 # |t| / plane distance below which a homography pair is a pure rotation.
 ROTATION_TRANSLATION = 0.02
+# Share of epipolar inliers one homography must explain for the pair to count as planar.
+PLANAR_FRACTION = 0.9
 
 
 def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
@@ -132,7 +134,9 @@ class ClassicalReconstructor:
         H, h_inl = geometry.homography(inliers, w, h)
         if H is None:
             raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
-        model = "homography" if parallax.cls == "rotation" else "3d"
+        # A plane seen from two places is explained by one homography too, whatever
+        # its parallax level; an essential matrix is degenerate there.
+        model = "homography" if parallax.cls == "rotation" or h_inl.mean() >= PLANAR_FRACTION else "3d"
         reason = (
             f"one homography explains the matches (parallax level {parallax.level:.2f} %): rotation or planar scene"
             if model == "homography"

@@ -8,4 +8,6 @@ rendered headless with moderngl + EGL as exact OpenCV pinhole cameras (:mod:`.re
 from pis3r.synth.cases import CLASSES, Case, CaseCameras, ParallaxLevel, demo_pair, make_case, write_case
 from pis3r.synth.scenes import Scene, make_scene
 
-__all__ = ["CLASSES", "Case", "CaseCameras", "ParallaxLevel", "Scene", "demo_pair", "make_case", "make_scene", "write_case"]
+__all__ = [
+    "CLASSES", "Case", "CaseCameras", "ParallaxLevel", "Scene", "demo_pair", "make_case", "make_scene", "write_case",
+]

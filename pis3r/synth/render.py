@@ -9,9 +9,11 @@ exact per pixel centre, ``inf`` where no surface is hit.
 
 Colour is supersampled (render ``s`` times larger, average ``s x s`` blocks, the same
 as integrating each pixel's footprint) from trilinear-mipmapped textures and slightly
-blurred like a lens would, so images look like photographs rather than aliased renders. Anisotropic filtering is left off:
-on llvmpipe it costs 4-5x the render time, and supersampling already sharpens surfaces
-seen at grazing angles. One GL context per process; the last scene's geometry and
+blurred like a lens would, so images look like photographs rather than aliased renders.
+Anisotropic filtering is left off: on llvmpipe it costs 4-5x the render time, and
+supersampling already sharpens surfaces seen at grazing angles.
+
+One GL context per process (create it after any fork); the last scene's geometry and
 textures stay uploaded.
 """
 

@@ -21,7 +21,6 @@ import numpy as np
 
 from pis3r.synth.textures import (
     PATTERNS,
-    TEXTURE_SIZE,
     Texture,
     flat_texture,
     landscape_texture,
@@ -163,7 +162,8 @@ class _Palette:
         self.layers = [photos[i] for i in chosen] + [t for t in library if t.kind == "material"]
         self.layers += [Texture(make.__name__, make(rng), "pattern") for make in PATTERNS]
         self.layers += [Texture("flat", flat_texture(rng), "flat") for _ in range(2)]
-        self.layers += [Texture("sky", sky_texture(rng), "sky"), Texture("landscape", landscape_texture(rng), "landscape")]
+        self.layers += [Texture("sky", sky_texture(rng), "sky")]
+        self.layers += [Texture("landscape", landscape_texture(rng), "landscape")]
         self.rng = rng
         self.used: set[int] = set()
 
@@ -244,7 +244,8 @@ def make_scene(seed: Seed, extra_textures: tuple[Texture, ...] = ()) -> Scene:
         layer, tint = palette.pick("flat", "material")
         parts.append(cylinder(where, radius, height, 10, layer, tint, (1.0, 1.0)))
     for _ in range(rng.integers(0, 3)):  # stairs: adjacent boxes of growing height
-        steps, rise, run, width = int(rng.integers(4, 9)), rng.uniform(0.15, 0.3), rng.uniform(0.25, 0.45), rng.uniform(1.5, 4)
+        steps, rise = int(rng.integers(4, 9)), rng.uniform(0.15, 0.3)
+        run, width = rng.uniform(0.25, 0.45), rng.uniform(1.5, 4)
         where, yaw = _placement(rng, 5, 20, max(width, steps * run))
         layer, tint = palette.pick("material", "pattern", "flat")
         forward = _yaw_matrix(yaw) @ np.array([0.0, 0.0, 1.0])

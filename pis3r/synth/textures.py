@@ -47,11 +47,9 @@ class Texture:
 
 
 def square(image: np.ndarray, size: int = TEXTURE_SIZE) -> np.ndarray:
-    """Centre square crop of ``(H, W[, C])`` resized (area filter) to ``(size, size, 3)`` uint8."""
-    rgb = to_uint8(image) if image.dtype != np.uint8 else image
-    if rgb.ndim == 2:
-        rgb = np.repeat(rgb[..., None], 3, axis=2)
-    rgb = rgb[..., :3]
+    """Centre square crop of an RGB image ``(H, W, 3)`` (uint8, or float in [0, 1]) resized
+    to ``(size, size, 3)`` uint8 (area filter when shrinking)."""
+    rgb = image if image.dtype == np.uint8 else to_uint8(image)
     h, w = rgb.shape[:2]
     side = min(h, w)
     y0, x0 = (h - side) // 2, (w - side) // 2
@@ -62,7 +60,8 @@ def square(image: np.ndarray, size: int = TEXTURE_SIZE) -> np.ndarray:
 
 @functools.lru_cache(maxsize=1)
 def skimage_textures() -> tuple[Texture, ...]:
-    """The bundled scikit-image photos and materials as textures (loaded once)."""
+    """The bundled scikit-image photos and materials as textures (loaded once); a file a
+    future scikit-image no longer bundles is skipped."""
     import skimage
 
     folder = Path(skimage.__file__).parent / "data"
@@ -71,7 +70,8 @@ def skimage_textures() -> tuple[Texture, ...]:
         with Image.open(folder / file) as image:  # PIL: quiet about page.png's odd ICC profile
             return Texture(Path(file).stem, square(np.asarray(image.convert("RGB"))), kind)
 
-    return tuple([load(f, "photo") for f in SKIMAGE_PHOTOS] + [load(f, "material") for f in SKIMAGE_MATERIALS])
+    files = [(f, "photo") for f in SKIMAGE_PHOTOS] + [(f, "material") for f in SKIMAGE_MATERIALS]
+    return tuple(load(f, kind) for f, kind in files if (folder / f).is_file())
 
 
 def folder_textures(folder: str | Path) -> tuple[Texture, ...]:
@@ -165,6 +165,7 @@ def flat_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.ndarr
 
 
 def _sky(rng: np.random.Generator, size: int, blue: np.ndarray) -> np.ndarray:
+    """``blue (3,)`` with white clouds where smooth noise is high, ``(size, size, 3)`` float."""
     clouds = np.clip((periodic_noise(rng, size, slope=2.0, lowest=1) - 0.5) * 2.5, 0.0, 1.0)
     return _mix(blue, np.array([0.95, 0.95, 0.97]), clouds)
 
@@ -180,7 +181,8 @@ def landscape_texture(rng: np.random.Generator, size: int = TEXTURE_SIZE) -> np.
     image = _sky(rng, size, np.array([0.5, 0.65, 0.9]) * rng.uniform(0.85, 1.1))
     rows = np.arange(size)[:, None]
     for haze, (low, high) in ((0.45, (0.25, 0.45)), (0.0, (0.1, 0.3))):  # far range first
-        profile = periodic_noise(rng, size, slope=1.5, lowest=1)[0]
+        profile = periodic_noise(rng, size, slope=1.5, lowest=1)[0]  # one row: a 1-D fractal
+        profile = (profile - profile.min()) / max(float(np.ptp(profile)), 1e-12)
         ridge = size * (1.0 - low - (high - low) * profile)
         terrain = _mix(np.array([0.25, 0.4, 0.15]) * rng.uniform(0.7, 1.2, 3),
                        np.array([0.45, 0.38, 0.28]) * rng.uniform(0.7, 1.2, 3), periodic_noise(rng, size, slope=1.2))

@@ -33,8 +33,16 @@ class _Captured:
 
 
 def _clone(outputs: Outputs) -> Outputs:
-    """Fresh copies of the static outputs (the next replay overwrites them)."""
-    return {k: [t.clone() for t in v] if isinstance(v, list) else v.clone() for k, v in outputs.items()}
+    """Fresh copies of the static outputs (the next replay overwrites them); a tensor
+    that appears twice (``pose_enc`` is ``pose_enc_list[-1]``) is copied once."""
+    copies: dict[int, torch.Tensor] = {}
+
+    def copy(t: torch.Tensor) -> torch.Tensor:
+        if id(t) not in copies:
+            copies[id(t)] = t.clone()
+        return copies[id(t)]
+
+    return {k: [copy(t) for t in v] if isinstance(v, list) else copy(v) for k, v in outputs.items()}
 
 
 class CudaGraphCache:

@@ -7,6 +7,7 @@ is not needed for stitching and is not built).
 
 from __future__ import annotations
 
+import contextlib
 from typing import Iterable
 
 import torch
@@ -39,6 +40,14 @@ def default_dpt_layers(depth: int) -> tuple[int, int, int, int]:
     if depth == 24:
         return RELEASED_DPT_LAYERS
     return tuple(round(k * (depth - 1) / 3) for k in range(4))
+
+
+def heads_in_fp32(device_type: str):
+    """Autocast switched off for the heads (they run in fp32 on the fp32 tokens the
+    aggregator returns); a no-op where the device has no autocast (e.g. ``meta``)."""
+    if torch.amp.is_autocast_available(device_type):
+        return torch.autocast(device_type=device_type, enabled=False)
+    return contextlib.nullcontext()
 
 
 class VGGT(nn.Module):
@@ -148,7 +157,7 @@ class VGGT(nn.Module):
         """
         tokens_list, patch_start_idx = self.aggregator(images, keep_layers=self._layers_used())
         predictions: dict = {}
-        with torch.autocast(device_type=images.device.type, enabled=False):
+        with heads_in_fp32(images.device.type):
             if self.camera_head is not None:
                 pose_enc_list = self.camera_head(tokens_list)
                 predictions["pose_enc"] = pose_enc_list[-1]
