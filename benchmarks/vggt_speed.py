@@ -13,9 +13,10 @@ GPU rows (bf16 autocast on compute capability >= 8, fp16 below; heads fp32), per
 - ``official``: facebookresearch/vggt, when the ``vggt`` package is importable (same weights).
 
 Times are medians of ``--repeats`` full forwards (model input -> all outputs on the GPU),
-after warm-up (which includes graph capture / compilation). Peak GB is
-``torch.cuda.max_memory_allocated`` over warm-up and timed runs, weights included.
-``max |Δ| vs eager`` compares depth and pose encodings to the eager path.
+after warm-up (which includes graph capture / compilation). Peak GB is what the model
+needs on its own: its weights plus the peak of ``torch.cuda.max_memory_allocated`` over
+warm-up and timed runs. ``max |Δ| vs eager`` compares depth and pose encodings with the
+eager path on the same input.
 """
 
 from __future__ import annotations
@@ -43,23 +44,27 @@ def autocast_dtype() -> torch.dtype:
     return torch.bfloat16 if torch.cuda.get_device_capability()[0] >= 8 else torch.float16
 
 
-def time_gpu(fn, images: torch.Tensor, warmup: int, repeats: int) -> tuple[float, float, dict]:
-    """Median ms and peak GB of ``fn(images)`` on the current GPU, and the last outputs."""
+def time_gpu(model: torch.nn.Module, images: torch.Tensor, warmup: int, repeats: int) -> tuple[float, float, dict]:
+    """Median ms of ``model(images)`` on the GPU, the peak GB it needs on its own (its
+    weights plus everything allocated during warm-up and timed runs), and its outputs."""
     torch.cuda.synchronize()
     torch.cuda.empty_cache()
+    before = torch.cuda.memory_allocated()
     torch.cuda.reset_peak_memory_stats()
     with torch.no_grad(), torch.autocast("cuda", dtype=autocast_dtype()):
         for _ in range(warmup):
-            out = fn(images)
+            out = model(images)
         times = []
         for _ in range(repeats):
             start, stop = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
             start.record()
-            out = fn(images)
+            out = model(images)
             stop.record()
             torch.cuda.synchronize()
             times.append(start.elapsed_time(stop))
-    return statistics.median(times), torch.cuda.max_memory_allocated() / 1e9, out
+    weights = sum(t.numel() * t.element_size() for t in model.parameters())
+    peak = torch.cuda.max_memory_allocated() - before + weights
+    return statistics.median(times), peak / 1e9, out
 
 
 def time_cpu(model: VGGT, images: torch.Tensor, warmup: int, repeats: int) -> float:
@@ -97,33 +102,32 @@ def print_row(cells) -> None:
 def gpu_rows(args) -> None:
     model = build(args.config, args.weights, "cuda")
     official = official_model(model) if args.config == "1b" else None
-    name = torch.cuda.get_device_name()
-    for views in args.views:
-        images = torch.rand(views, 3, args.height, args.width, device="cuda")
-        model.cuda_graphs = False
-        eager_ms, eager_gb, reference = time_gpu(model, images, args.warmup, args.repeats)
-        print_row([name, args.config, "eager", views, f"{args.height}x{args.width}", f"{eager_ms:.1f}", f"{eager_gb:.2f}", "0"])
-        model.cuda_graphs = True
-        model._graphs.clear()
-        ms, gb, out = time_gpu(model, images, args.warmup, args.repeats)
+    device = torch.cuda.get_device_name()
+    size = f"{args.height}x{args.width}"
+    references: dict[int, dict] = {}
+
+    def images_for(views: int) -> torch.Tensor:
+        generator = torch.Generator("cuda").manual_seed(views)
+        return torch.rand(views, 3, args.height, args.width, generator=generator, device="cuda")
+
+    def measure(label: str, net: torch.nn.Module, views: int) -> None:
+        ms, gb, out = time_gpu(net, images_for(views), args.warmup, args.repeats)
+        reference = references.setdefault(views, out)
         diff = max_difference(out, reference)
-        print_row([name, args.config, "graphs", views, f"{args.height}x{args.width}", f"{ms:.1f}", f"{gb:.2f}", f"{diff:.2e}"])
-        model._graphs.clear()
+        print_row([device, args.config, label, views, size, f"{ms:.1f}", f"{gb:.2f}", f"{diff:.2e}"])
+        model._graphs.clear()  # release the captured graphs' memory before the next row
+
+    for views in args.views:
+        model.cuda_graphs = False
+        measure("eager", model, views)
+        model.cuda_graphs = True
+        measure("graphs", model, views)
         if official is not None:
-            ms, gb, out = time_gpu(official, images, args.warmup, args.repeats)
-            diff = max_difference(out, reference)
-            print_row([name, args.config, "official", views, f"{args.height}x{args.width}", f"{ms:.1f}", f"{gb:.2f}", f"{diff:.2e}"])
+            measure("official", official, views)
     if args.compile:
         model.compile_blocks()
         for views in args.views:
-            images = torch.rand(views, 3, args.height, args.width, device="cuda")
-            model.cuda_graphs = False
-            _, _, reference = time_gpu(model, images, 1, 1)
-            model.cuda_graphs = True
-            ms, gb, out = time_gpu(model, images, args.warmup, args.repeats)
-            diff = max_difference(out, reference)
-            print_row([name, args.config, "graphs+compile", views, f"{args.height}x{args.width}", f"{ms:.1f}", f"{gb:.2f}", f"{diff:.2e}"])
-            model._graphs.clear()
+            measure("graphs+compile", model, views)
 
 
 def cpu_row(args) -> None:
@@ -131,8 +135,8 @@ def cpu_row(args) -> None:
     images = torch.rand(2, 3, args.height, args.width)
     repeats = 1 if args.cpu_config == "1b" else args.cpu_repeats
     ms = time_cpu(model, images, 0 if args.cpu_config == "1b" else 1, repeats)
-    threads = torch.get_num_threads()
-    print_row([f"CPU ({threads} threads)", args.cpu_config, "eager fp32", 2, f"{args.height}x{args.width}", f"{ms:.0f}", "-", "-"])
+    device = f"CPU ({torch.get_num_threads()} threads)"
+    print_row([device, args.cpu_config, "eager fp32", 2, f"{args.height}x{args.width}", f"{ms:.0f}", "-", "-"])
 
 
 def main() -> None:

@@ -10,6 +10,8 @@ from click.testing import CliRunner
 
 from pis3r.cli import main
 from pis3r.eval.baselines import MethodFailure, run_method
+from pis3r.eval.protocol import discover_cases
+from pis3r.eval.runner import EvalConfig, evaluate_method
 from pis3r.io import write_png
 from tests.test_eval_protocol import rotation_pair
 
@@ -35,12 +37,24 @@ def test_apap_runs_in_a_child_process_and_reports_its_offset():
     assert output.relative_pose is None and output.seconds > 0
 
 
-def test_eval_command_end_to_end_and_resume(tmp_path):
-    data = tmp_path / "tiny"
+def tiny_dataset(folder):
+    """Two pair folders (ref = the wide photo A, tgt = a rotated view) under ``folder``."""
     for name, yaw in (("left", 8.0), ("right", -8.0)):
         case, _ = rotation_pair(yaw)
-        write_png(data / name / "ref.png", case.gt)
-        write_png(data / name / "tgt.png", case.target)
+        write_png(folder / name / "ref.png", case.gt)
+        write_png(folder / name / "tgt.png", case.target)
+    return folder
+
+
+def test_without_ground_truth_methods_get_no_reference_scores(tmp_path):
+    spec = discover_cases(tiny_dataset(tmp_path / "tiny"))[0]
+    row = evaluate_method(spec, "apap", EvalConfig(("apap",), crop=0.0)).row
+    assert row["status"] == "ok" and 0 <= row["piqe"] <= 100 and row["niqe"] > 0
+    assert "bar_psnr" not in row
+
+
+def test_eval_command_end_to_end_and_resume(tmp_path):
+    data = tiny_dataset(tmp_path / "tiny")
     report = tmp_path / "report"
     args = ["eval", str(data), "-o", str(report), "--methods", "apap,opencv", "--workers", "1", "--quiet"]
 

@@ -149,6 +149,10 @@ def test_foreign_or_incomplete_checkpoints_are_rejected(tmp_path):
     save_file(partial, str(tmp_path / "partial.safetensors"))
     with pytest.raises(WeightsError, match="1 missing"):
         load_vggt(tmp_path / "partial.safetensors")
+    reshaped = dict(state, **{"camera_head.empty_pose_tokens": torch.zeros(1, 1, 8)})
+    save_file(reshaped, str(tmp_path / "reshaped.safetensors"))
+    with pytest.raises(WeightsError, match="size mismatch for camera_head.empty_pose_tokens"):
+        load_vggt(tmp_path / "reshaped.safetensors")
     save_file({"foo": torch.zeros(1)}, str(tmp_path / "foreign.safetensors"))
     with pytest.raises(WeightsError, match="not a VGGT checkpoint"):
         load_vggt(tmp_path / "foreign.safetensors")

@@ -138,7 +138,8 @@ def test_crop_mode_sizes_and_pil_bicubic():
     pixels = photo(60, 80)
     batch, (p,) = preprocess_images([pixels], "crop")
     assert batch.shape == (1, 3, 392, 518) and batch.dtype == np.float32
-    expected = np.asarray(Image.fromarray(to_uint8(pixels)).resize((518, 392), Image.Resampling.BICUBIC)) / np.float32(255)
+    resized = Image.fromarray(to_uint8(pixels)).resize((518, 392), Image.Resampling.BICUBIC)
+    expected = np.asarray(resized) / np.float32(255)
     np.testing.assert_array_equal(batch[0].transpose(1, 2, 0), expected.astype(np.float32))
     assert (p.offset_x, p.offset_y, p.box) == (0, 0, (0, 0, 517, 391))
 

@@ -13,11 +13,14 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves
 
 from pis3r.reconstruct.vggt import VGGT
 from pis3r.reconstruct.vggt.aggregator import frame_slot_tokens
 from pis3r.reconstruct.vggt.dinov2 import resize_pos_embed
 from pis3r.reconstruct.vggt.dpt import FeatureFusionBlock, ResidualConvUnit, dpt_position_embedding
+from pis3r.reconstruct.vggt.graphs import CudaGraphCache, _Captured
 from pis3r.reconstruct.vggt.layers import Block
 from pis3r.reconstruct.vggt.model import SMALL_CONFIG
 from pis3r.reconstruct.vggt.rope import apply_rope, rope_angles, token_positions
@@ -350,7 +353,8 @@ def test_golden_outputs_float64():
     """3 frames of 42x70 (the 4x4 position table shrinks on rows, grows on columns)."""
     with torch.no_grad():
         out = small_model()(images(S=3))
-    torch.testing.assert_close(out["pose_enc"][0], torch.tensor(GOLDEN_POSE_ENC, dtype=torch.float64), rtol=1e-9, atol=1e-12)
+    golden = torch.tensor(GOLDEN_POSE_ENC, dtype=torch.float64)
+    torch.testing.assert_close(out["pose_enc"][0], golden, rtol=1e-9, atol=1e-12)
     for key, value in GOLDEN_FINGERPRINTS.items():
         assert fingerprint(out[key]) == pytest.approx(value, rel=1e-10), key
 
@@ -402,3 +406,101 @@ def test_keeping_only_used_rounds_changes_nothing():
         if t is not None:
             torch.testing.assert_close(t, every[i], rtol=0, atol=0)
     assert start == 5 and every[0].shape == (1, 2, 5 + 3 * 5, 64)
+
+
+# -- speed path: capturable forward, graph cache --------------------------------------------
+
+
+class _HostTensorAudit(TorchDispatchMode):
+    """Records every op that sees a tensor off the model's (meta) device."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.offenders: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        leaves = tree_leaves((args, kwargs, out))
+        if any(isinstance(t, torch.Tensor) and t.device.type != "meta" for t in leaves):
+            self.offenders.append(str(func))
+        return out
+
+
+def test_forward_uses_no_host_data():
+    """On the ``meta`` device any data-dependent op (``.item()``, ``int(t)``, ``.cpu()``)
+    fails and any tensor made on the host shows up: the forward has neither, so on CUDA
+    it makes no host<->device copy or sync and can be captured in a CUDA graph."""
+    with torch.device("meta"):
+        model = VGGT(**SMALL_CONFIG).eval()
+        x = torch.empty(1, 2, 3, 42, 70)
+    audit = _HostTensorAudit()
+    with torch.no_grad(), audit:
+        out = model(x)
+    assert audit.offenders == []
+    assert out["depth"].shape == (1, 2, 42, 70, 1)
+
+
+class _FakeGraph:
+    def __init__(self) -> None:
+        self.replays = 0
+        self.was_reset = False
+
+    def replay(self) -> None:
+        self.replays += 1
+
+    def reset(self) -> None:
+        self.was_reset = True
+
+
+def test_graph_cache_is_keyed_by_shape_and_autocast_and_evicts_lru(monkeypatch):
+    captured = []
+
+    def fake_capture(fn, images, autocast):
+        entry = _Captured(_FakeGraph(), images.clone(), fn(images))
+        captured.append((tuple(images.shape), autocast, entry))
+        return entry
+
+    cache = CudaGraphCache(capacity=2)
+    monkeypatch.setattr(cache, "_capture", fake_capture)
+
+    def fn(images):
+        pose = images.sum(dim=(-1, -2, -3))
+        return {"pose_enc": pose, "pose_enc_list": [pose]}
+
+    a, b, c = torch.ones(1, 2, 3, 4, 4), torch.ones(1, 3, 3, 4, 4), torch.ones(1, 4, 3, 4, 4)
+    out = cache.run(fn, a)
+    assert out["pose_enc_list"][-1] is out["pose_enc"]  # one copy of a shared output
+    cache.run(fn, a)
+    assert len(captured) == 1 and captured[0][2].graph.replays == 2
+    cache.run(fn, b)
+    cache.run(fn, a)  # a becomes the most recent
+    cache.run(fn, c)  # evicts b
+    assert len(cache) == 2 and captured[1][2].graph.was_reset and not captured[0][2].graph.was_reset
+    cache.run(fn, b)
+    assert len(captured) == 4
+    cache.clear()
+    assert len(cache) == 0
+
+
+def test_graph_capture_failure_falls_back_to_eager(monkeypatch):
+    cache = CudaGraphCache()
+
+    def failing_capture(fn, images, autocast):
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    monkeypatch.setattr(cache, "_capture", failing_capture)
+    x = torch.ones(2, 2)
+    assert torch.equal(cache.run(lambda t: {"y": t * 2}, x)["y"], x * 2)
+    monkeypatch.setattr(cache, "_capture", lambda *a: pytest.fail("retried a failed capture"))
+    assert torch.equal(cache.run(lambda t: {"y": t * 2}, x)["y"], x * 2)
+
+
+def test_graphs_only_on_cuda_inference_and_cleared_when_tensors_change():
+    model = small_model(torch.float32)
+    assert not model._use_graphs(torch.empty(1, 1, 3, 14, 14))
+    model._graphs._graphs[("fake",)] = _Captured(_FakeGraph(), torch.empty(0), {})
+    model.double()
+    assert len(model._graphs) == 0
+    model._graphs._graphs[("fake",)] = _Captured(_FakeGraph(), torch.empty(0), {})
+    model.load_state_dict(model.state_dict())
+    assert len(model._graphs) == 0

@@ -148,7 +148,8 @@ def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: fl
     with tempfile.TemporaryDirectory(prefix="pis3r-eval-") as tmp:
         inputs, output, error = (Path(tmp) / f for f in ("inputs.npz", "output.npz", "error.txt"))
         np.savez(inputs, reference=reference, target=target)
-        exit_code = _launch(name, threads, geometry, inputs, output, error, timeout)
+        args = [name, str(threads), str(int(geometry)), str(inputs), str(output), str(error)]
+        exit_code = _server().run(args, timeout)
         if exit_code is None:
             raise MethodFailure(f"{name} timed out after {timeout:g} s")
         if exit_code != 0 or not output.is_file():
@@ -156,13 +157,6 @@ def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: fl
             raise MethodFailure(f"{name} failed: {message}")
         with np.load(output) as data:
             return _unpack(dict(data))
-
-
-def _launch(name: str, threads: int, geometry: bool, inputs: Path, output: Path, error: Path, timeout: float
-            ) -> int | None:
-    """Run :func:`_child` in a new process; its exit code, or ``None`` after a timeout (killed)."""
-    args = [name, str(threads), str(int(geometry)), str(inputs), str(output), str(error)]
-    return _server().run(args, timeout)
 
 
 class _ForkServer:
@@ -187,6 +181,8 @@ class _ForkServer:
         return self.process.poll() is None
 
     def run(self, args: list[str], timeout: float) -> int | None:
+        """Run :func:`_child` with ``args`` in a forked child: its exit code, or ``None``
+        after ``timeout`` seconds (the child is killed)."""
         with self.lock:
             self.process.stdin.write((json.dumps(args) + "\n").encode())
             pid = int(self._read_line(None))

@@ -27,6 +27,10 @@ Scores (all on the GT grid; a method's "filled" pixels are those it produced any
 A failure is scored as an empty result: the padded reference alone, valid everywhere, so
 its ``valid_*``, ``ext_*`` and ``bar_*`` scores count black wherever the GT extends the
 reference.
+
+Cases come from a folder (:func:`discover_cases`, :func:`load_case`): ``pis3r synth``
+output, pair folders under the crop protocol, and the calibrated scenes of the development
+set. Geometry (:func:`score_geometry`, :func:`pose_error`) needs their GT cameras.
 """
 
 from __future__ import annotations
@@ -71,8 +75,9 @@ class Case:
     ``gt[y:y+h, x:x+w]`` for ``crop_offset = (x, y)`` (GT pixel of reference pixel (0, 0)).
     ``target`` ``(h2, w2, 3)``: the other input. ``gt`` ``(H, W, 3)``: the wide ground truth.
     All float32 RGB in [0, 1]. ``parallax_class``: ``rotation`` | ``slight`` | ``large`` |
-    ``unknown``; ``parallax_level``: the dataset's own continuous level (NaN when it has
-    none). ``cameras``: GT cameras ``{"ref", "tgt", "gt": Camera}`` when the dataset is
+    ``unknown``; ``parallax_level``: the dataset's own continuous level (synthetic: GT
+    homography residual in % of the diagonal; calibrated scenes: baseline / depth; NaN
+    when it has none). ``cameras``: GT cameras ``{"ref", "tgt", "gt": Camera}`` when the dataset is
     calibrated, else ``None``.
     """
 
@@ -162,21 +167,20 @@ def load_crop_case(
     crop: float = 0.6,
     parallax_class: str = UNKNOWN_CLASS,
     dataset: str | None = None,
+    name: str | None = None,
 ) -> Case:
     """The paper's real-world construction for a pair folder (``ref.*`` = A, ``tgt.*`` = B):
-    reference = centre crop of A keeping ``crop`` of each side, target = B, GT = A."""
+    reference = centre crop of A keeping ``crop`` of each side, target = B, GT = A. A
+    ``gt.txt`` next to them (ScanNet) gives the GT cameras."""
     pair_dir = Path(pair_dir)
     path_a, path_b = find_image(pair_dir, "ref"), find_image(pair_dir, "tgt")
     if path_a is None or path_b is None:
         raise InputError(f"{pair_dir}: not a pair folder (needs ref.* and tgt.* images)")
-    return crop_case(
-        read_image(path_a).pixels,
-        read_image(path_b).pixels,
-        crop,
-        name=pair_dir.name,
-        dataset=dataset or pair_dir.parent.name,
-        parallax_class=parallax_class,
-    )
+    images = [read_image(path_a).pixels, read_image(path_b).pixels]
+    gt_txt = pair_dir / "gt.txt"
+    cameras = scannet_cameras(gt_txt, images) if gt_txt.is_file() else None
+    return crop_case(*images, crop, name or pair_dir.name, dataset or pair_dir.parent.name,
+                     parallax_class, cameras=cameras)
 
 
 def crop_case(
@@ -315,12 +319,9 @@ def load_case(spec: CaseSpec, crop: float = 0.6) -> Case:
             parallax_level=spec.parallax_level,
             cameras={key: Camera.from_dict(cameras[key]) for key in ("ref", "gt", "tgt")},
         )
-    if spec.kind == "calibrated":
-        images, cameras = calibrated_views(folder, (spec.view_a, spec.view_b))
-    else:
-        images = [read_image(find_image(folder, stem)).pixels for stem in ("ref", "tgt")]
-        gt_txt = folder / "gt.txt"
-        cameras = scannet_cameras(gt_txt, images) if gt_txt.is_file() else None
+    if spec.kind == "pair":
+        return load_crop_case(folder, crop, spec.parallax_class, spec.dataset, spec.name)
+    images, cameras = calibrated_views(folder, (spec.view_a, spec.view_b))
     return crop_case(*images, crop, spec.name, spec.dataset, spec.parallax_class, spec.parallax_level, cameras)
 
 
@@ -572,10 +573,12 @@ def score_geometry(canvas_ref: tuple[np.ndarray, np.ndarray, tuple[int, int]],
         _, inliers = cv2.findFundamentalMat(pts_a, pts_b, cv2.USAC_MAGSAC, GEOMETRY_OUTLIER_PX, 0.999, 10000)
         if inliers is not None:
             pts_a, pts_b = pts_a[inliers.ravel() > 0], pts_b[inliers.ravel() > 0]
-    if len(pts_a) < 8:
+    errors = metrics.sampson_error(fundamental_matrix(camera_a, camera_b), pts_a, pts_b) if len(pts_a) >= 8 else []
+    # A rotating pair has no epipolar geometry (F = 0): every error is NaN.
+    errors = np.asarray(errors)[np.isfinite(errors)]
+    if not len(errors):
         return {"sampson_mean": math.nan, "sampson_median": math.nan, "sampson_matches": len(pts_a)}
-    errors = metrics.sampson_error(fundamental_matrix(camera_a, camera_b), pts_a, pts_b)
-    return {"sampson_mean": float(np.nanmean(errors)), "sampson_median": float(np.nanmedian(errors)),
+    return {"sampson_mean": float(errors.mean()), "sampson_median": float(np.median(errors)),
             "sampson_matches": len(pts_a)}
 
 

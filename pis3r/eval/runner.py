@@ -156,6 +156,11 @@ def evaluate_method(spec: CaseSpec, method: str, config: EvalConfig) -> TaskResu
 
 
 def _task(spec: CaseSpec, method: str, config: EvalConfig) -> TaskResult:
+    import torch
+
+    # Scoring (LPIPS, SIFT) shares the cores with the other workers too.
+    torch.set_num_threads(config.threads)
+    cv2.setNumThreads(config.threads)
     if method == CASE_TASK:
         return evaluate_case_info(spec, config)
     return evaluate_method(spec, method, config)

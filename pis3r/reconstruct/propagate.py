@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
-SOLVE_MAX_SIDE = 320
+SOLVE_MAX_SIDE = 256
 PLANE_WINDOW = 7
 
 
@@ -53,7 +53,8 @@ def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
 def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float) -> np.ndarray:
     """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``."""
     A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsc().astype(np.float64)
-    return splu(A).solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
+    # Minimum-degree ordering suits the symmetric grid system (faster than COLAMD).
+    return splu(A, permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
 
 
 def _local_planes(idepth: np.ndarray, conf: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:

@@ -19,6 +19,9 @@ from pis3r.scene import Scene
 # Points closer than this (relative to the median scene depth) are numerically on
 # the camera plane: their projection explodes, so they are dropped.
 MIN_RELATIVE_DEPTH = 1e-3
+# Relative depth added to a point's footprint pixels, so that exact hits of the
+# same surface win over them while nearer surfaces still occlude farther ones.
+FOOTPRINT_DEPTH_BIAS = 1e-3
 
 
 @dataclass
@@ -49,17 +52,24 @@ def _scene_points(scene: Scene, ref: Camera, device: torch.device, min_confidenc
     """Stack every view's valid points: reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``."""
     xyz, rgb, owner = [], [], []
     for index, view in enumerate(scene.views):
-        keep = view.valid & (view.confidence >= min_confidence)
-        if not keep.any():
+        keep = torch.from_numpy(view.valid & (view.confidence >= min_confidence)).to(device)
+        if not bool(keep.any()):
             continue
-        world = view.world_points()[keep]
-        xyz.append(torch.from_numpy(ref.world_to_camera(world).astype(np.float32)))
-        rgb.append(torch.from_numpy(view.image[keep]))
-        owner.append(torch.full((int(keep.sum()),), index, dtype=torch.int16))
+        cam = view.camera
+        # view camera -> reference camera: x_ref = R_rel (x_view - t_view) + t_ref with R_rel = R_ref R_view^T
+        R_rel = torch.as_tensor(ref.R @ cam.R.T, dtype=torch.float32, device=device)
+        t_rel = torch.as_tensor(ref.t - ref.R @ cam.R.T @ cam.t, dtype=torch.float32, device=device)
+        K_inv = torch.as_tensor(np.linalg.inv(cam.K), dtype=torch.float32, device=device)
+        v, u = torch.nonzero(keep, as_tuple=True)
+        depth = torch.from_numpy(view.depth).to(device)[v, u]
+        pix = torch.stack([u.float(), v.float(), torch.ones_like(depth)], dim=1)
+        xyz.append((pix @ K_inv.T) * depth[:, None] @ R_rel.T + t_rel)
+        rgb.append(torch.from_numpy(view.image).to(device)[v, u])
+        owner.append(torch.full((len(depth),), index, dtype=torch.int16, device=device))
     if not xyz:
         empty = torch.zeros((0, 3), device=device)
         return empty, empty, torch.zeros((0,), dtype=torch.int16, device=device)
-    return torch.cat(xyz).to(device), torch.cat(rgb).to(device), torch.cat(owner).to(device)
+    return torch.cat(xyz), torch.cat(rgb), torch.cat(owner)
 
 
 def _window(coords: torch.Tensor, ref_size: int, limit: int) -> tuple[int, int]:
@@ -114,6 +124,7 @@ def reproject_to_canvas(
     device: str | torch.device = "cpu",
     min_confidence: float = 0.0,
     match_exposure: bool = True,
+    footprint: bool = True,
 ) -> Canvas:
     """Z-buffer all points of ``scene`` into camera ``ref_index`` on a canvas that grows
     to hold them (capped at ``max_canvas_scale`` times the reference's size).
@@ -121,7 +132,9 @@ def reproject_to_canvas(
     The reference's own pixels are copied verbatim into the canvas. With
     ``match_exposure``, every other view's colours are scaled per channel by the gain
     that matches them to the reference where they land inside it, so a different
-    exposure does not show as a frame around the reference.
+    exposure does not show as a frame around the reference. With ``footprint``,
+    each point covers the 2x2 pixel centres around it (exact hits first), which
+    closes the cracks of views magnified by the reprojection.
     """
     device = torch.device(device)
     ref_view = scene.views[ref_index]
@@ -145,10 +158,29 @@ def reproject_to_canvas(
     inside = (px >= 0) & (px < width) & (py >= 0) & (py < height)
     dropped = int((~inside).sum())
     px, py, z, rgb, owner = px[inside], py[inside], z[inside], rgb[inside], owner[inside]
+    step_x = torch.where(u[inside] - x0 >= px, 1, -1)
+    step_y = torch.where(v[inside] - y0 >= py, 1, -1)
 
     ox, oy = -x0, -y0
     if match_exposure:
         rgb = _match_gains(rgb, owner, px - ox, py - oy, ref_view.image, ref_index)
+
+    # The reference's own points land exactly on its pixels, which are copied
+    # verbatim below; only the other views are splatted.
+    others = owner != ref_index
+    px, py, z, rgb, owner = px[others], py[others], z[others], rgb[others], owner[others]
+    step_x, step_y = step_x[others], step_y[others]
+    if footprint:
+        # Each point also covers the three other pixel centres around its exact
+        # position, a little behind itself so exact hits win: this closes the
+        # one-pixel cracks a magnified view leaves between its points.
+        behind = z * (1.0 + FOOTPRINT_DEPTH_BIAS)
+        px = torch.cat([px, px + step_x, px, px + step_x])
+        py = torch.cat([py, py, py + step_y, py + step_y])
+        z = torch.cat([z, behind, behind, behind])
+        rgb, owner = rgb.repeat(4, 1), owner.repeat(4)
+        keep = (px >= 0) & (px < width) & (py >= 0) & (py < height)
+        px, py, z, rgb, owner = px[keep], py[keep], z[keep], rgb[keep], owner[keep]
 
     flat = py * width + px
     zbuf = torch.full((height * width,), float("inf"), device=device)

@@ -1,8 +1,8 @@
 """The project's own VGGT (facebook/VGGT-1B, checkpoint-exact) and its reconstruction backend.
 
 Importing this package registers the ``vggt`` backend and offers
-:func:`find_weights`, :func:`fetch_weights` and :func:`load_vggt`; the model classes
-(and torch) are imported only when first used, so ``auto`` backend resolution stays cheap.
+:func:`find_weights`, :func:`fetch_weights` and :func:`load_vggt`; the model class
+:class:`VGGT` is imported on first use.
 """
 
 from __future__ import annotations

@@ -15,7 +15,6 @@ Contract details (see :class:`pis3r.scene.View`):
 from __future__ import annotations
 
 import contextlib
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -28,8 +27,6 @@ from pis3r.reconstruct.vggt.preprocess import Placement, preprocess_images
 from pis3r.reconstruct.vggt.weights import FETCH_HINT, WEIGHTS_ENV, find_weights, load_vggt
 from pis3r.scene import Scene, View
 
-logger = logging.getLogger(__name__)
-
 # The last loaded model, kept for the next call (a server stitches many times; loading
 # 5 GB each time would dominate). Key: (resolved path, file mtime, device).
 _loaded: dict[tuple, object] = {}
@@ -39,7 +36,11 @@ def _model_for(path: Path, device: str):
     key = (str(path.resolve()), path.stat().st_mtime_ns if path.is_file() else None, device)
     if key not in _loaded:
         _loaded.clear()
-        _loaded[key] = load_vggt(path, device)
+        model = load_vggt(path, device)
+        # One forward per stitch: capturing a CUDA graph (two warm-up runs, then a
+        # private memory pool held for good) would cost more than it saves.
+        model.cuda_graphs = False
+        _loaded[key] = model
     return _loaded[key]
 
 

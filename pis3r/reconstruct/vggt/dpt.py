@@ -26,8 +26,9 @@ def uv_grid(width: int, height: int, aspect_ratio: float, dtype: torch.dtype, de
     """
     diagonal = (aspect_ratio**2 + 1.0) ** 0.5
     span_x, span_y = aspect_ratio / diagonal, 1.0 / diagonal
-    u = torch.linspace(-span_x * (width - 1) / width, span_x * (width - 1) / width, width, dtype=dtype, device=device)
-    v = torch.linspace(-span_y * (height - 1) / height, span_y * (height - 1) / height, height, dtype=dtype, device=device)
+    u_end, v_end = span_x * (width - 1) / width, span_y * (height - 1) / height
+    u = torch.linspace(-u_end, u_end, width, dtype=dtype, device=device)
+    v = torch.linspace(-v_end, v_end, height, dtype=dtype, device=device)
     uu, vv = torch.meshgrid(u, v, indexing="xy")
     return torch.stack([uu, vv], dim=-1)
 
@@ -171,7 +172,8 @@ class DPTHead(nn.Module):
             x = add_position_embedding(self.projects[k](x), W, H)
             features.append(self.resize_layers[k](x))
         x = self._fuse(features)
-        x = F.interpolate(x, size=(grid_h * self.patch_size, grid_w * self.patch_size), mode="bilinear", align_corners=True)
+        full_size = (grid_h * self.patch_size, grid_w * self.patch_size)
+        x = F.interpolate(x, size=full_size, mode="bilinear", align_corners=True)
         x = self.scratch.output_conv2(add_position_embedding(x, W, H))
         values, conf = activate_dense(x, self.activation)
         return values.reshape(B, frames, *values.shape[1:]), conf.reshape(B, frames, *conf.shape[1:])

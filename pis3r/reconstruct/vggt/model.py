@@ -191,12 +191,13 @@ class VGGT(nn.Module):
 
     # -- speed knobs -----------------------------------------------------------------
 
-    def compile_blocks(self, **compile_kwargs) -> "VGGT":
+    def compile_blocks(self, **compile_kwargs) -> VGGT:
         """``torch.compile`` every transformer block in place (regional compilation).
 
-        All blocks of a kind share one compiled graph, so compiling is quick; it fuses
-        the LayerNorm/RoPE/GELU/residual element-wise work around the matmuls. Works
-        with CUDA-graph replay (compilation happens in the warm-up runs).
+        Blocks of one kind share their compiled code. It fuses the LayerNorm, RoPE,
+        GELU and residual element-wise work around the matmuls (values move by float
+        rounding only). Works with CUDA-graph replay: compilation happens in the
+        warm-up runs before capture.
         """
         for module in self.modules():
             if isinstance(module, Block):

@@ -24,9 +24,8 @@ def token_positions(grid_h: int, grid_w: int, num_special: int, device: torch.de
 
     Special tokens sit at ``(0, 0)``; patches are row-major at ``(r + 1, c + 1)``.
     """
-    rows = torch.arange(1, grid_h + 1, device=device).repeat_interleave(grid_w)
-    cols = torch.arange(1, grid_w + 1, device=device).repeat(grid_h)
-    patches = torch.stack([rows, cols], dim=-1)
+    index = torch.arange(grid_h * grid_w, device=device)
+    patches = torch.stack([index // grid_w + 1, index % grid_w + 1], dim=-1)
     special = torch.zeros(num_special, 2, dtype=patches.dtype, device=device)
     return torch.cat([special, patches], dim=0)
 

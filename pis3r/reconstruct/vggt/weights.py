@@ -187,7 +187,10 @@ def load_vggt(path: str | os.PathLike, device: str | torch.device = "cpu") -> VG
             "%s: skipped %d track_head.* tensors (%d parameters): pis3r's VGGT has no track head",
             path, len(skipped), count,
         )
-    config = infer_config(checkpoint.shapes)
+    try:
+        config = infer_config(checkpoint.shapes)
+    except WeightsError as exc:
+        raise WeightsError(f"{path}: {exc}; {FETCH_HINT}") from None
     with torch.device("meta"):
         model = VGGT(**config)
     keys = [k for k in checkpoint.shapes if not k.startswith(TRACK_HEAD_PREFIX)]
@@ -196,20 +199,20 @@ def load_vggt(path: str | os.PathLike, device: str | torch.device = "cpu") -> VG
     except Exception as exc:
         raise WeightsError(f"{path}: cannot read its tensors ({_one_line(exc)}); {FETCH_HINT}") from None
     try:
-        result = model.load_state_dict(state, strict=False, assign=True)
-    except RuntimeError as exc:  # a tensor whose shape does not fit
-        detail = next((line.strip() for line in str(exc).splitlines() if "mismatch" in line), _one_line(exc))
-        raise WeightsError(f"{path}: does not fit the VGGT architecture ({detail})") from None
-    if result.missing_keys or result.unexpected_keys:
-        raise WeightsError(
-            f"{path}: does not fit the VGGT architecture "
-            f"({_key_summary('missing', result.missing_keys)}; {_key_summary('unexpected', result.unexpected_keys)})"
-        )
+        model.load_state_dict(state, strict=True, assign=True)
+    except RuntimeError as exc:
+        raise WeightsError(f"{path}: does not fit the VGGT architecture ({_mismatch(model, state, exc)})") from None
     model.aggregator.reset_constants(device)
     return model.eval().requires_grad_(False)
 
 
-def _key_summary(kind: str, keys: list[str]) -> str:
-    if not keys:
-        return f"0 {kind}"
-    return f"{len(keys)} {kind}, e.g. {', '.join(keys[:3])}"
+def _mismatch(model: VGGT, state: Mapping, error: RuntimeError) -> str:
+    """One line on why a strict load failed: missing/unexpected keys, else the first size mismatch."""
+    expected, given = set(model.state_dict()), set(state)
+    missing, unexpected = sorted(expected - given), sorted(given - expected)
+    if missing or unexpected:
+        return "; ".join(
+            f"{len(keys)} {kind}" + (f", e.g. {', '.join(keys[:3])}" if keys else "")
+            for kind, keys in (("missing", missing), ("unexpected", unexpected))
+        )
+    return next((line.strip() for line in str(error).splitlines() if "mismatch" in line), _one_line(error))
