@@ -139,6 +139,7 @@ def stitch(
     weights: str | os.PathLike | None = None,
     conf_threshold: float = 0.0,
     hole_radius: int = 4,
+    depth_fill: str = "planar",
     quiet: bool = True,
 ) -> StitchResult | list[StitchResult]:
     """Stitch photos of one scene into the view of one reference camera.
@@ -149,7 +150,9 @@ def stitch(
     else classical), ``"classical"`` or ``"vggt"``. ``focal``: focal length in pixels
     of the inputs, if known. ``max_canvas_scale``: the canvas is at most this many
     times the reference's width and height. ``device``: ``"auto"``, ``"cpu"``, ``"cuda"``.
-    ``weights`` / ``conf_threshold``: for learned backends. ``quiet=False`` prints one
+    ``weights`` / ``conf_threshold``: for learned backends. ``depth_fill``: how the
+    classical backend extends depth where only one view sees the scene
+    (``"planar"``: local planes continue; ``"harmonic"``: smooth inverse depth). ``quiet=False`` prints one
     progress line per stage on stderr.
 
     Raises :class:`pis3r.Pis3rError` (one-line message) for unusable inputs.
@@ -161,7 +164,8 @@ def stitch(
     if ref != "all" and not (isinstance(ref, (int, np.integer)) and 0 <= int(ref) < len(photos)):
         raise InputError(f"--ref must be an image index 0..{len(photos) - 1} or 'all', got {ref!r}")
     options = ReconstructOptions(
-        focal=focal, device=resolve_device(device), weights=weights, conf_threshold=conf_threshold
+        focal=focal, device=resolve_device(device), weights=weights, conf_threshold=conf_threshold,
+        depth_fill=depth_fill,
     )
     backend_name = resolve_backend_name(backend, options)
     timer.say(f"backend: {backend_name}" + (" (auto)" if backend == "auto" else ""))

@@ -77,9 +77,13 @@ def _parse_ref(value: str) -> int | str:
               help="VGGT weight file (model.safetensors or model.pt); or set PIS3R_VGGT_WEIGHTS.")
 @click.option("--conf-threshold", type=click.FloatRange(0.0, 1.0), default=0.0, show_default=True,
               help="Drop points whose confidence (0..1) is below this; 0 keeps all, as the paper.")
+@click.option("--depth-fill", type=click.Choice(["planar", "harmonic"]), default="planar", show_default=True,
+              help="Classical backend: extend depth where one view sees the scene by continuing local planes "
+                   "(planar) or by smooth inverse depth (harmonic).")
 @click.option("--ply", is_flag=True, help="Also write points.ply (all views' points, xyz + rgb).")
 @click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
-def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device, weights, conf_threshold, ply, quiet):
+def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device, weights, conf_threshold,
+                   depth_fill, ply, quiet):
     """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise)."""
     from pis3r.api import stitch
 
@@ -92,6 +96,7 @@ def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device
         device=device,
         weights=weights,
         conf_threshold=conf_threshold,
+        depth_fill=depth_fill,
         quiet=quiet,
     )
     results = result if isinstance(result, list) else [result]

@@ -90,6 +90,39 @@ def test_1b_parameter_and_tensor_counts(meta_1b):
     assert meta_1b.track_head is None
 
 
+def _spec_keys() -> set[str]:
+    """Every state-dict key of VGGT-1B without its track head, from the patterns of spec §8."""
+    wb = (".weight", ".bias")
+    block = [f"{n}{s}" for n in ("norm1", "norm2", "attn.qkv", "attn.proj", "mlp.fc1", "mlp.fc2") for s in wb]
+    block += ["ls1.gamma", "ls2.gamma"]
+    qk_norm = [f"attn.{n}_norm{s}" for n in "qk" for s in wb]
+    keys = {"aggregator.camera_token", "aggregator.register_token"}
+    dino = "aggregator.patch_embed."
+    keys |= {dino + k for k in ("cls_token", "pos_embed", "register_tokens", "mask_token")}
+    keys |= {dino + "patch_embed.proj" + s for s in wb} | {dino + "norm" + s for s in wb}
+    keys |= {f"{dino}blocks.{i}.{k}" for i in range(24) for k in block}
+    for kind in ("frame", "global"):
+        keys |= {f"aggregator.{kind}_blocks.{i}.{k}" for i in range(24) for k in block + qk_norm}
+    cam = "camera_head."
+    keys |= {f"{cam}trunk.{i}.{k}" for i in range(4) for k in block}
+    keys |= {cam + "empty_pose_tokens"}
+    for name in ("token_norm", "trunk_norm", "embed_pose", "poseLN_modulation.1", "pose_branch.fc1", "pose_branch.fc2"):
+        keys |= {cam + name + s for s in wb}
+    for head in ("depth_head.", "point_head."):
+        convs = ["norm", *(f"projects.{k}" for k in range(4)), *(f"resize_layers.{k}" for k in (0, 1, 3))]
+        convs += [f"scratch.refinenet{r}.resConfUnit1.conv{c}" for r in (1, 2, 3) for c in (1, 2)]
+        convs += [f"scratch.refinenet{r}.resConfUnit2.conv{c}" for r in (1, 2, 3, 4) for c in (1, 2)]
+        convs += [f"scratch.refinenet{r}.out_conv" for r in (1, 2, 3, 4)]
+        convs += ["scratch.output_conv1", "scratch.output_conv2.0", "scratch.output_conv2.2"]
+        keys |= {head + c + s for c in convs for s in wb}
+        keys |= {f"{head}scratch.layer{k}_rn.weight" for k in range(1, 5)}
+    return keys
+
+
+def test_1b_has_exactly_the_spec_keys(meta_1b):
+    assert set(meta_1b.state_dict()) == _spec_keys()
+
+
 def test_1b_key_names_and_shapes(meta_1b):
     shapes = {k: tuple(t.shape) for k, t in meta_1b.state_dict().items()}
     expected = {
@@ -504,3 +537,17 @@ def test_graphs_only_on_cuda_inference_and_cleared_when_tensors_change():
     model._graphs._graphs[("fake",)] = _Captured(_FakeGraph(), torch.empty(0), {})
     model.load_state_dict(model.state_dict())
     assert len(model._graphs) == 0
+
+
+def test_load_state_dict_skips_only_track_head_entries(caplog):
+    source = small_model(torch.float32)
+    state = source.state_dict()
+    state["track_head.tracker.updateformer.virual_tracks"] = torch.zeros(1, 4, 1, 8)
+    target = VGGT(**SMALL_CONFIG)
+    with caplog.at_level("INFO", logger="pis3r.reconstruct.vggt.model"):
+        target.load_state_dict(state)  # strict
+    assert any("skipped 1 track_head.* tensors" in r.getMessage() for r in caplog.records)
+    assert all(torch.equal(a, b) for a, b in zip(target.state_dict().values(), source.state_dict().values()))
+    state["aggregator.extra"] = torch.zeros(1)
+    with pytest.raises(RuntimeError, match="aggregator.extra"):
+        target.load_state_dict(state)

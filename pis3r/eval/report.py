@@ -163,8 +163,21 @@ def render_markdown(rows: list[dict], title: str) -> str:
             out += [f"## {dataset}: no-reference quality of the stitched canvases", ""]
             for name, group in groups:
                 out += [f"### {name}", "", *markdown_table(_by_method(group, methods), NO_REFERENCE), ""]
+    out += ["## Wall time per method", "", "Seconds of the method itself per pair (its child process; "
+            "failed runs excluded).", "", *_timing_table(method_rows, methods), ""]
     out += ["## Per case", "", *_per_case_table(method_rows, ground_truth), ""]
     return "\n".join(out)
+
+
+def _timing_table(rows: list[dict], methods: list[str]) -> list[str]:
+    lines = ["| Method | runs | failed | mean s | median s | max s | total s |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for method in methods:
+        mine = [r for r in rows if r["method"] == method]
+        seconds = np.array([r["seconds"] for r in mine if r.get("status") == "ok"], float)
+        stats = [seconds.mean(), np.median(seconds), seconds.max(), seconds.sum()] if len(seconds) else [math.nan] * 4
+        failed = sum(r.get("status") == "failed" for r in mine)
+        lines.append(f"| {method} | {len(mine)} | {failed} | " + " | ".join(_cell(v, "{:.1f}") for v in stats) + " |")
+    return lines
 
 
 def _per_case_table(rows: list[dict], ground_truth: bool) -> list[str]:

@@ -22,13 +22,16 @@ class ReconstructOptions:
     ``focal``: focal length in pixels of the input photos (overrides EXIF and
     self-calibration); ``device``: ``"cpu"``, ``"cuda"`` or ``"auto"``;
     ``weights``: a weight file for learned backends; ``conf_threshold``: drop points
-    whose confidence is below it (``0`` keeps all, as the paper does).
+    whose confidence is below it (``0`` keeps all, as the paper does);
+    ``depth_fill``: how the classical backend fills depth where only one view sees
+    the scene (``"planar"`` or ``"harmonic"``, see :mod:`pis3r.reconstruct.propagate`).
     """
 
     focal: float | None = None
     device: str = "auto"
     weights: str | os.PathLike | None = None
     conf_threshold: float = 0.0
+    depth_fill: str = "planar"
 
 
 class Reconstructor(Protocol):

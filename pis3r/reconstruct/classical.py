@@ -63,9 +63,8 @@ class ClassicalReconstructor:
 
     name = "classical"
 
-    def __init__(self, options: ReconstructOptions, propagation: str = "planar") -> None:
+    def __init__(self, options: ReconstructOptions) -> None:
         self.options = options
-        self.propagation = propagation
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
@@ -243,7 +242,7 @@ class ClassicalReconstructor:
             if not (meas.confidence > 0.05).any():
                 raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
             idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
-            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.propagation)
+            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.options.depth_fill)
             dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
             depth = np.where(_depth_edges(dense), 0.0, 1.0 / dense).astype(np.float32)
             conf = np.where(depth > 0, conf, 0.0).astype(np.float32)

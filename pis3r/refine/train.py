@@ -156,6 +156,11 @@ def training_loss(refiner: Refiner, xin: torch.Tensor, x0: torch.Tensor, c: torc
     return use_res * loss_res + use_eps * loss_eps, loss_res, loss_eps
 
 
+def trained_terms(objective: str) -> tuple[str, ...]:
+    """The loss columns that the objective optimises (the others are only diagnostics)."""
+    return {"pred_res": ("loss_res",), "pred_noise": ("loss_eps",)}.get(objective, ("loss", "loss_res", "loss_eps"))
+
+
 def learning_rate(step: int, settings: TrainSettings) -> float:
     """Linear warm-up, then cosine decay from ``lr`` to ``min_lr`` at the last step."""
     if step < settings.warmup:
@@ -172,13 +177,14 @@ def update_ema(ema: torch.nn.Module, net: torch.nn.Module, step: int, decay: flo
         e.lerp_(p, 1.0 - d)
 
 
-def plot_losses(rows: list[dict], path: Path) -> None:
-    """A loss-curve PNG (log scale, raw and smoothed), drawn with OpenCV."""
+def plot_losses(rows: list[dict], path: Path, keys: tuple[str, ...] = ("loss", "loss_res", "loss_eps")) -> None:
+    """A loss-curve PNG of the ``keys`` columns (log scale, smoothed), drawn with OpenCV."""
     width, height, margin = 640, 360, 40
     image = np.full((height, width, 3), 255, np.uint8)
     steps = np.array([r["step"] for r in rows], float)
     cv2.rectangle(image, (margin, margin // 2), (width - 10, height - margin), (0, 0, 0), 1)
-    curves = [("loss", (200, 120, 0)), ("loss_res", (0, 0, 200)), ("loss_eps", (0, 150, 0))]
+    palette = {"loss": (200, 120, 0), "loss_res": (0, 0, 200), "loss_eps": (0, 150, 0)}
+    curves = [(key, palette[key]) for key in keys]
     values = np.log10(np.array([[r[k] for k, _ in curves] for r in rows], float).clip(1e-6))
     lo, hi = values.min(), max(values.max(), values.min() + 1e-3)
     span = max(steps.max() - steps.min(), 1.0)
@@ -263,7 +269,7 @@ def train_refiner(out: str | Path, settings: TrainSettings, resume: str | Path |
             writer.writeheader()
             writer.writerows(rows)
         if rows:
-            plot_losses(rows, paths["png"])
+            plot_losses(rows, paths["png"], trained_terms(refiner.objective))
 
     began = time.time()
     refiner.net.train()

@@ -9,6 +9,7 @@ from Python integers).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -32,6 +33,11 @@ class _Captured:
     static_outputs: Outputs
 
 
+def _on(device: torch.device):
+    """Make ``device`` current (streams and graphs belong to the current CUDA device)."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
 def _clone(outputs: Outputs) -> Outputs:
     """Fresh copies of the static outputs (the next replay overwrites them); a tensor
     that appears twice (``pose_enc`` is ``pose_enc_list[-1]``) is copied once."""
@@ -48,8 +54,9 @@ def _clone(outputs: Outputs) -> Outputs:
 class CudaGraphCache:
     """Captured graphs of ``fn(images) -> dict of tensors``, at most ``capacity`` shapes (LRU).
 
-    The key is the input's shape, dtype and device plus the CUDA autocast state, so a
-    graph always replays exactly the computation an eager call would run. A shape
+    The key is the input's shape, dtype and device plus the CUDA autocast state (and
+    inference mode), so a graph always replays exactly the computation an eager call
+    would run. A shape
     whose capture fails is remembered and runs eagerly from then on.
     """
 
@@ -71,7 +78,9 @@ class CudaGraphCache:
     def run(self, fn: Callable[[torch.Tensor], Outputs], images: torch.Tensor) -> Outputs:
         """``fn(images)`` through a cached graph (captured on first use of this key)."""
         autocast = (torch.is_autocast_enabled("cuda"), torch.get_autocast_dtype("cuda"))
-        key = (tuple(images.shape), images.dtype, images.device, autocast)
+        # Inference mode is in the key: its (inference) static tensors cannot be
+        # written to outside it.
+        key = (tuple(images.shape), images.dtype, images.device, autocast, torch.is_inference_mode_enabled())
         if key in self._uncapturable:
             return fn(images)
         entry = self._graphs.get(key)
@@ -87,9 +96,10 @@ class CudaGraphCache:
                 _, evicted = self._graphs.popitem(last=False)
                 evicted.graph.reset()
         self._graphs.move_to_end(key)
-        entry.static_input.copy_(images)
-        entry.graph.replay()
-        return _clone(entry.static_outputs)
+        with _on(images.device):
+            entry.static_input.copy_(images)
+            entry.graph.replay()
+            return _clone(entry.static_outputs)
 
     @staticmethod
     def _capture(fn, images: torch.Tensor, autocast: tuple[bool, torch.dtype]) -> _Captured:
@@ -102,13 +112,14 @@ class CudaGraphCache:
             with torch.autocast("cuda", dtype=dtype, enabled=enabled, cache_enabled=False):
                 return fn(static_input)
 
-        side = torch.cuda.Stream(device=images.device)
-        side.wait_stream(torch.cuda.current_stream(images.device))
-        with torch.cuda.stream(side):
-            for _ in range(WARMUP_RUNS):
-                call()
-        torch.cuda.current_stream(images.device).wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            static_outputs = call()
+        with _on(images.device):
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                for _ in range(WARMUP_RUNS):
+                    call()
+            torch.cuda.current_stream().wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                static_outputs = call()
         return _Captured(graph, static_input, static_outputs)

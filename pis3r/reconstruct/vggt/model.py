@@ -8,6 +8,8 @@ is not needed for stitching and is not built).
 from __future__ import annotations
 
 import contextlib
+import logging
+from collections import OrderedDict
 from typing import Iterable
 
 import torch
@@ -18,6 +20,9 @@ from pis3r.reconstruct.vggt.camera_head import CameraHead
 from pis3r.reconstruct.vggt.dpt import DPTHead
 from pis3r.reconstruct.vggt.graphs import CudaGraphCache
 from pis3r.reconstruct.vggt.layers import Block
+from pis3r.reconstruct.vggt.weights import TRACK_HEAD_PREFIX
+
+logger = logging.getLogger(__name__)
 
 RELEASED_DPT_LAYERS = (4, 11, 17, 23)
 
@@ -212,5 +217,15 @@ class VGGT(nn.Module):
         return super()._apply(fn, recurse)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """``nn.Module.load_state_dict``, except that ``track_head.*`` entries (in the
+        released checkpoint and in an official model's state dict) are skipped with a log
+        line: this model has no track head. Every other key must match as usual."""
+        skipped = [k for k in state_dict if k.startswith(TRACK_HEAD_PREFIX)]
+        if skipped:
+            logger.info("skipped %d track_head.* tensors: pis3r's VGGT has no track head", len(skipped))
+            kept = OrderedDict((k, v) for k, v in state_dict.items() if not k.startswith(TRACK_HEAD_PREFIX))
+            if hasattr(state_dict, "_metadata"):
+                kept._metadata = state_dict._metadata
+            state_dict = kept
         self._graphs.clear()
         return super().load_state_dict(state_dict, strict=strict, assign=assign)

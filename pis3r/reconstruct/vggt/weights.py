@@ -21,7 +21,7 @@ WEIGHTS_ENV = "PIS3R_VGGT_WEIGHTS"
 HF_REPO = "facebook/VGGT-1B"
 HF_FILES = ("model.safetensors", "model.pt")
 FETCH_HINT = "get them with `pis3r fetch-weights vggt`"
-TRACK_HEAD_PREFIX = "track_head."
+TRACK_HEAD_PREFIX = "track_head."  # tensors of the track head, which pis3r does not build
 
 if TYPE_CHECKING:  # torch is imported only when a model is loaded
     import torch
