@@ -22,6 +22,7 @@ from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer
 from pis3r.reconstruct.base import ReconstructOptions, create_backend, resolve_backend_name, resolve_device
 from pis3r.scene import Scene
+from pis3r.stitch.blend import BLEND_METHODS, blend_reference_border
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.reproject import reproject_to_canvas
 
@@ -43,7 +44,10 @@ class StitchResult:
     ``camera``: the canvas camera (reference ``R, t``; ``K`` with the principal point
     shifted by ``ref_offset``) — the result is a true perspective image of it.
     ``ref_offset``: ``(x, y)`` canvas pixel where the reference's pixel ``(0, 0)`` lands.
-    ``scene``: the reconstruction (all cameras, depth maps); ``report``: what happened.
+    ``ref_index``: which input is the reference.
+    ``scene``: the reconstruction — per input a :class:`pis3r.scene.View` with its camera,
+    ``(h, w)`` depth and confidence, in the world frame of input 0.
+    ``report``: what happened (the content of ``report.json``).
     """
 
     image: np.ndarray
@@ -75,10 +79,13 @@ class StitchResult:
             colors.append(view.image[keep])
         return np.concatenate(points), np.concatenate(colors)
 
-    def save(self, outdir: str | os.PathLike, ply: bool = False) -> list[Path]:
+    def save(
+        self, outdir: str | os.PathLike, ply: bool = False, colmap: str | os.PathLike | None = None
+    ) -> list[Path]:
         """Write ``stitched.png``, ``mask.png``, ``camera.json``, ``report.json`` (and
-        ``points.ply``) into ``outdir``. Every file is encoded in memory first and
-        written through a temporary file + rename, so a failure leaves no partial file."""
+        ``points.ply``) into ``outdir``, and a COLMAP text model into ``colmap`` if given
+        (see :mod:`pis3r.colmap`). Every file is encoded in memory first and written
+        through a temporary file + rename, so a failure leaves no partial file."""
         outdir = Path(outdir)
         payload = {
             "stitched.png": io.encode_png(self.image),
@@ -92,6 +99,10 @@ class StitchResult:
         for name, data in payload.items():
             io.write_bytes(outdir / name, data)
             written.append(outdir / name)
+        if colmap is not None:
+            from pis3r.colmap import write_colmap_text
+
+            written += write_colmap_text(self, colmap)
         return written
 
 
@@ -140,6 +151,8 @@ def stitch(
     conf_threshold: float = 0.0,
     hole_radius: int = 4,
     depth_fill: str = "planar",
+    blend: str = "feather",
+    blend_into_reference: bool = False,
     quiet: bool = True,
 ) -> StitchResult | list[StitchResult]:
     """Stitch photos of one scene into the view of one reference camera.
@@ -152,10 +165,14 @@ def stitch(
     times the reference's width and height. ``device``: ``"auto"``, ``"cpu"``, ``"cuda"``.
     ``weights`` / ``conf_threshold``: for learned backends. ``depth_fill``: how the
     classical backend extends depth where only one view sees the scene
-    (``"planar"``: local planes continue; ``"harmonic"``: smooth inverse depth). ``quiet=False`` prints one
-    progress line per stage on stderr.
+    (``"planar"``: local planes continue; ``"harmonic"``: smooth inverse depth).
+    ``blend``: ``"feather"``, ``"multiband"`` or ``"none"`` across the reference border
+    (:mod:`pis3r.stitch.blend`); the reference's pixels stay verbatim unless
+    ``blend_into_reference``. ``quiet=False`` prints one progress line per stage on stderr.
 
-    Raises :class:`pis3r.Pis3rError` (one-line message) for unusable inputs.
+    Returns a :class:`StitchResult` (a list of them for ``ref="all"``) whose ``image`` is
+    ``(H, W, 3)`` float32 RGB in [0, 1] with ``H, W`` at most ``max_canvas_scale`` times the
+    reference's size. Raises :class:`pis3r.Pis3rError` (one-line message) for unusable inputs.
     """
     timer = StageTimer(quiet=quiet)
     warnings: list[str] = []
@@ -163,6 +180,8 @@ def stitch(
         photos = load_photos(images, warnings)
     if ref != "all" and not (isinstance(ref, (int, np.integer)) and 0 <= int(ref) < len(photos)):
         raise InputError(f"--ref must be an image index 0..{len(photos) - 1} or 'all', got {ref!r}")
+    if blend not in BLEND_METHODS:
+        raise InputError(f"--blend must be one of {', '.join(BLEND_METHODS)}, got {blend!r}")
     options = ReconstructOptions(
         focal=focal, device=resolve_device(device), weights=weights, conf_threshold=conf_threshold,
         depth_fill=depth_fill,
@@ -186,6 +205,11 @@ def stitch(
             canvas = reproject_to_canvas(scene, index, max_canvas_scale, options.device)
         with sub.stage("fill holes"):
             filled = fill_holes(canvas.image, canvas.occupied, radius=hole_radius)
+        with sub.stage("blend"):
+            image = blend_reference_border(
+                filled.image, canvas.ref_offset, canvas.under_reference, canvas.under_valid,
+                editable=canvas.occupied | filled.hole, method=blend, into_reference=blend_into_reference,
+            )
         mask = np.full(canvas.source.shape, MASK_BACKGROUND, np.uint8)
         mask[canvas.occupied] = MASK_PROJECTED
         mask[filled.hole] = MASK_INPAINTED
@@ -193,7 +217,7 @@ def stitch(
             scene, backend_name, parallax, canvas, mask, {**timer.seconds, **sub.seconds}, warnings, index
         )
         results.append(
-            StitchResult(filled.image, mask, canvas.camera, canvas.ref_offset, index, scene, report)
+            StitchResult(image, mask, canvas.camera, canvas.ref_offset, index, scene, report)
         )
     return results if ref == "all" else results[0]
 

@@ -80,10 +80,16 @@ def _parse_ref(value: str) -> int | str:
 @click.option("--depth-fill", type=click.Choice(["planar", "harmonic"]), default="planar", show_default=True,
               help="Classical backend: extend depth where one view sees the scene by continuing local planes "
                    "(planar) or by smooth inverse depth (harmonic).")
+@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True,
+              help="Blend the other views toward the reference's colours across its border.")
+@click.option("--blend-into-reference", is_flag=True,
+              help="Let the blend enter the reference (by default its pixels stay verbatim).")
 @click.option("--ply", is_flag=True, help="Also write points.ply (all views' points, xyz + rgb).")
+@click.option("--colmap", "colmap_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Also write a COLMAP text model (cameras.txt, images.txt, points3D.txt) into this directory.")
 @click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
 def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device, weights, conf_threshold,
-                   depth_fill, ply, quiet):
+                   depth_fill, blend, blend_into_reference, ply, colmap_dir, quiet):
     """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise)."""
     from pis3r.api import stitch
 
@@ -97,12 +103,15 @@ def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device
         weights=weights,
         conf_threshold=conf_threshold,
         depth_fill=depth_fill,
+        blend=blend,
+        blend_into_reference=blend_into_reference,
         quiet=quiet,
     )
     results = result if isinstance(result, list) else [result]
     for item in results:
-        target = outdir / f"ref_{item.ref_index}" if len(results) > 1 else outdir
-        written = item.save(target, ply=ply)
+        subdir = f"ref_{item.ref_index}" if len(results) > 1 else ""
+        colmap = colmap_dir / subdir if colmap_dir is not None else None
+        written = item.save(outdir / subdir, ply=ply, colmap=colmap)
         if not quiet:
             for path in written:
                 click.echo(str(path))

@@ -20,3 +20,20 @@ def real_pairs() -> list[Path]:
 needs_real_data = pytest.mark.skipif(
     not REAL.is_dir(), reason=f"real image pairs not found at {REAL} (../shared is absent)"
 )
+
+
+@pytest.fixture(scope="session")
+def small_pair():
+    """Two overlapping 190x160 crops of one photo, uint8 RGB (reference first)."""
+    from skimage import data
+
+    photo = data.astronaut()[::2, ::2]
+    return photo[20:180, 0:190].copy(), photo[30:190, 60:250].copy()
+
+
+@pytest.fixture(scope="session")
+def small_result(small_pair):
+    """``pis3r.stitch`` of ``small_pair`` (classical backend), computed once per session."""
+    import pis3r
+
+    return pis3r.stitch(list(small_pair), backend="classical")

@@ -243,6 +243,20 @@ def test_missing_or_corrupt_weights_raise_weights_error(tmp_path):
     assert shipped is None or shipped.is_file()
 
 
+def test_shipped_weights_are_fp16_small_and_usable():
+    shipped = default_weights_path()
+    if shipped is None:
+        pytest.skip("no refiner weights shipped in this checkout")
+    assert shipped.stat().st_size <= 16 * 2**20
+    from safetensors import safe_open
+
+    with safe_open(str(shipped), framework="pt") as handle:
+        assert all(handle.get_tensor(name).dtype == torch.float16 for name in handle.keys())
+    image, mask = _canvas(40, 48)
+    out = refine_canvas(image, mask, "holes", steps=2, weights=shipped)
+    assert out.shape == image.shape and out.dtype == np.float32 and np.isfinite(out).all()
+
+
 def test_train_refiner_command_writes_weights_and_logs(tmp_path):
     from pis3r.cli import main
 

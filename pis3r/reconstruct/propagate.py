@@ -11,8 +11,9 @@ Both strategies solve a screened, colour-weighted Laplacian system (the
 - ``planar``: x = the parameters (a, b, c) of local planes in inverse depth,
   ``1/z = a u + b v + c`` (a plane in 3-D is exactly such an affine function of the
   pixel), fitted around every seed. Propagating the planes and evaluating them
-  continues ground and facades linearly into the unseen part; a final screened
-  solve keeps the measured values where they exist.
+  continues ground and facades linearly into the unseen part (held within a
+  factor ``PLANE_LEASH`` of the harmonic solution, so mixed or noisy planes cannot
+  run away); a final screened solve keeps the measured values where they exist.
 
 Inverse depth is clamped from below by a far-plane prior, so surfaces extrapolated
 past the horizon (sky, distant background) become very far instead of flipping
@@ -28,6 +29,7 @@ from scipy.sparse.linalg import splu
 
 SOLVE_MAX_SIDE = 256
 PLANE_WINDOW = 7
+PLANE_LEASH = 1.25
 
 
 def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
@@ -117,25 +119,24 @@ def propagate_inverse_depth(
     far = 0.25 * float(np.quantile(small[seeds], 0.02))
 
     weight = np.where(seeds, small_conf, 0.0).ravel()
-    if method == "harmonic":
-        solved = screened_solve(L, np.stack([small.ravel(), weight], -1), weight, smoothness)
-        dense, reach = solved[:, 0], solved[:, 1]
-    elif method == "planar":
+    if method not in ("harmonic", "planar"):
+        raise ValueError(f"unknown propagation method {method!r}")
+    solved = screened_solve(L, np.stack([small.ravel(), weight], -1), weight, smoothness)
+    dense, reach = solved[:, 0], solved[:, 1]
+    if method == "planar":
         params, plane_w = _local_planes(small, np.where(seeds, small_conf, 0.0), PLANE_WINDOW)
         pw = plane_w.ravel()
-        fields = screened_solve(L, np.concatenate([params.reshape(-1, 3), pw[:, None]], 1), pw, smoothness)
+        fields = screened_solve(L, params.reshape(-1, 3), pw, smoothness)
         v, u = np.mgrid[0:sh, 0:sw].astype(np.float64)
         planar = fields[:, 0] * u.ravel() + fields[:, 1] * v.ravel() + fields[:, 2]
-        planar = np.maximum(planar, far)
+        # Far from their seeds, mixed or noisy planes can run away; stay within a
+        # factor PLANE_LEASH of the harmonic solution (in inverse depth).
+        harmonic = np.maximum(dense, far)
+        planar = np.clip(planar, harmonic / PLANE_LEASH, harmonic * PLANE_LEASH)
         # Measurements where they exist, the extrapolated planes elsewhere.
         prior = 0.02
-        solved = screened_solve(
-            L, np.stack([(weight * small.ravel() + prior * planar) / (weight + prior), weight], -1),
-            weight + prior, smoothness,
-        )
-        dense, reach = solved[:, 0], solved[:, 1]
-    else:
-        raise ValueError(f"unknown propagation method {method!r}")
+        blended = (weight * small.ravel() + prior * planar) / (weight + prior)
+        dense = screened_solve(L, blended[:, None], weight + prior, smoothness)[:, 0]
     dense = np.maximum(dense.reshape(sh, sw), far)
     reach = np.clip(reach.reshape(sh, sw), 0, 1)
     dense = cv2.resize(dense.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)

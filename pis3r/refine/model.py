@@ -63,6 +63,7 @@ def save_refiner(refiner: Refiner, path: str | Path, state: dict[str, torch.Tens
     tmp = path.with_name(path.name + ".tmp")
     save_file(tensors, str(tmp), metadata=refiner.metadata())
     tmp.replace(path)
+    path.chmod(0o644)  # safetensors creates 0600 files; weights are meant to be shared
     return path
 
 

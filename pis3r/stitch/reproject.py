@@ -32,7 +32,10 @@ class Canvas:
     frame (``inf`` where empty); ``source``: ``(H, W)`` int16 index of the view whose
     point won (``-1`` where empty); ``camera``: the canvas camera; ``ref_offset``:
     ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
-    ``dropped_points``: points that fell outside the capped canvas.
+    ``dropped_points``: points that fell outside the capped canvas;
+    ``under_reference``: ``(h, w, 3)`` what the other views put where the reference
+    (``h x w``) is pasted, and ``under_valid`` ``(h, w)`` bool where they put anything
+    (the overlap that blending across the reference border works from).
     """
 
     image: np.ndarray
@@ -41,6 +44,8 @@ class Canvas:
     camera: Camera
     ref_offset: tuple[int, int]
     dropped_points: int
+    under_reference: np.ndarray | None = None
+    under_valid: np.ndarray | None = None
 
     @property
     def occupied(self) -> np.ndarray:
@@ -203,6 +208,7 @@ def reproject_to_canvas(
     source = source.reshape(height, width).cpu().numpy()
 
     window = (slice(oy, oy + ref.height), slice(ox, ox + ref.width))
+    under_reference, under_valid = image[window].copy(), source[window] >= 0
     image[window] = ref_view.image
     source[window] = ref_index
     ref_depth = np.where(ref_view.valid, ref_view.depth, np.inf).astype(np.float32)
@@ -214,4 +220,6 @@ def reproject_to_canvas(
         camera=ref.shifted(ox, oy, width, height),
         ref_offset=(ox, oy),
         dropped_points=dropped,
+        under_reference=under_reference,
+        under_valid=under_valid,
     )

@@ -1,0 +1,68 @@
+"""COLMAP text export read back by pycolmap, and points.ply read back by Open3D."""
+
+import numpy as np
+import open3d
+import pycolmap
+import pytest
+
+from pis3r.colmap import colmap_quaternion, write_colmap_text
+
+
+def test_quaternion_is_colmap_order_with_positive_w():
+    angle = np.deg2rad(30.0)
+    R = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    np.testing.assert_allclose(colmap_quaternion(R), [np.cos(angle / 2), np.sin(angle / 2), 0, 0], atol=1e-12)
+    from scipy.spatial.transform import Rotation
+
+    for R in Rotation.random(20, random_state=0).as_matrix():
+        q = colmap_quaternion(R)
+        assert q[0] >= 0
+        np.testing.assert_allclose(Rotation.from_quat([*q[1:], q[0]]).as_matrix(), R, atol=1e-12)
+
+
+def test_pycolmap_reads_cameras_poses_and_points(small_result, tmp_path):
+    write_colmap_text(small_result, tmp_path, max_points=500)
+    model = pycolmap.Reconstruction(str(tmp_path))
+    cameras = [view.camera for view in small_result.scene.views] + [small_result.camera]
+    assert model.num_cameras() == model.num_images() == len(cameras)
+    assert model.num_points3D() == 500
+    for index, expected in enumerate(cameras, start=1):
+        camera = model.cameras[index]
+        assert (camera.width, camera.height) == (expected.width, expected.height)
+        K = expected.K.copy()
+        K[:2, 2] += 0.5  # COLMAP's pixel centres are at +0.5
+        np.testing.assert_allclose(camera.calibration_matrix(), K, atol=1e-9)
+        image = model.images[index]
+        assert image.camera_id == index
+        pose = image.cam_from_world()
+        np.testing.assert_allclose(pose.rotation.matrix(), expected.R, atol=1e-9)
+        np.testing.assert_allclose(pose.translation, expected.t, atol=1e-9)
+    assert model.images[len(cameras)].name == "stitched.png"
+    # The points are a subset of the reconstruction, colours included.
+    points, _ = small_result.point_cloud()
+    sample = np.array([p.xyz for p in model.points3D.values()])
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    assert np.all((sample >= lo - 1e-4) & (sample <= hi + 1e-4))
+
+
+def test_cli_writes_colmap_and_a_ply_open3d_reads(small_pair, tmp_path):
+    from click.testing import CliRunner
+    from PIL import Image
+
+    from pis3r.cli import main
+
+    paths = []
+    for index, array in enumerate(small_pair):
+        paths.append(str(tmp_path / f"view {index}.png"))
+        Image.fromarray(array).save(paths[-1])
+    out = tmp_path / "out"
+    run = CliRunner().invoke(main, ["stitch", *paths, "-o", str(out), "--ply", "--colmap", str(out / "sparse"),
+                                    "--quiet", "--backend", "classical"])
+    assert run.exit_code == 0, run.output
+    model = pycolmap.Reconstruction(str(out / "sparse"))
+    assert sorted(image.name for image in model.images.values()) == ["stitched.png", "view_0.png", "view_1.png"]
+    cloud = open3d.io.read_point_cloud(str(out / "points.ply"), format="ply")
+    points, colors = np.asarray(cloud.points), np.asarray(cloud.colors)
+    assert len(points) > 1000 and colors.shape == points.shape and np.isfinite(points).all()
+    assert 0.0 <= colors.min() and colors.max() <= 1.0 and colors.std() > 0.01
+    assert model.num_points3D() == min(len(points), 100_000)
