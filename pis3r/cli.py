@@ -158,11 +158,13 @@ def fetch_weights_command(model):
 
 
 # Commands whose implementation lives with their stage.
+from pis3r.batch import batch_command  # noqa: E402
 from pis3r.eval.command import eval_command  # noqa: E402
 from pis3r.refine.command import train_refiner_command  # noqa: E402
 from pis3r.synth.command import synth_command  # noqa: E402
+from pis3r.web.command import serve_command  # noqa: E402
 
-for _command in (synth_command, eval_command, train_refiner_command):
+for _command in (synth_command, eval_command, train_refiner_command, batch_command, serve_command):
     main.add_command(_command)
 
 if __name__ == "__main__":  # pragma: no cover

@@ -212,10 +212,10 @@ def _atomic_write(path: Path, write) -> None:
 
 
 def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an ``(H, W)`` or ``(H, W, 3)`` image (float in [0, 1] or uint8)."""
+    """PNG bytes of an ``(H, W)``, ``(H, W, 3)`` RGB or ``(H, W, 4)`` RGBA image (float in [0, 1] or uint8)."""
     a = image if image.dtype == np.uint8 else to_uint8(image)
     if a.ndim == 3:
-        a = cv2.cvtColor(a, cv2.COLOR_RGB2BGR)
+        a = cv2.cvtColor(a, cv2.COLOR_RGBA2BGRA if a.shape[2] == 4 else cv2.COLOR_RGB2BGR)
     ok, buf = cv2.imencode(".png", a)
     if not ok:
         raise OutputError("PNG encoding failed")

@@ -132,15 +132,16 @@ METHODS = {
     "stitching": stitch_stitching,
     "apap": stitch_apap,
 }
-# Methods whose canvases are perspective images of a known camera, so geometry applies.
-GEOMETRY_METHODS = ("pis3r", "apap")
+# Methods whose canvas is a perspective image of a known camera at an offset they export:
+# the exact-offset score and geometry apply to them.
+CAMERA_METHODS = ("pis3r", "apap")
 
 
 def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: float = DEFAULT_TIMEOUT_S,
                threads: int = 1, geometry: bool = False) -> MethodOutput:
     """Run method ``name`` on ``(H, W, 3)`` images in a child process with a ``timeout`` (s),
     using at most ``threads`` CPU threads (OpenCV and torch). ``geometry``: also ask for the
-    target-view canvas and relative pose (methods in ``GEOMETRY_METHODS``).
+    target-view canvas and relative pose (methods in ``CAMERA_METHODS``).
 
     Raises :class:`MethodFailure` for a crash, timeout or refusal."""
     if name not in METHODS:

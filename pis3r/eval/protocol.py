@@ -536,13 +536,18 @@ def score_registered(stitched, case: Case, filled: np.ndarray | None = None, lpi
     Returns :func:`score_placed`'s dict plus ``registered`` (bool), ``reg_inliers`` and
     ``reg_reason``; a failed registration is scored as :func:`empty_result`."""
     image, filled = _image_and_filled(stitched, filled)
+    return register_and_score(image, filled, case, lpips_device)[0]
+
+
+def register_and_score(image: np.ndarray, filled: np.ndarray, case: Case, lpips_device: str = "cpu"
+                       ) -> tuple[dict, Placed | None]:
+    """:func:`score_registered` of a canvas ``(h, w, 3)`` with ``filled`` ``(h, w)``, and the
+    registered result on the GT grid (``None`` when registration failed)."""
     registration = register(image, filled, case)
-    if registration.ok:
-        scores = score_placed(place(image, filled, registration.homography, case), case, lpips_device=lpips_device)
-    else:
-        scores = score_failure(case, lpips_device)
+    placed = place(image, filled, registration.homography, case) if registration.ok else None
+    scores = score_placed(placed, case, lpips_device=lpips_device) if placed else score_failure(case, lpips_device)
     return {**scores, "registered": registration.ok, "reg_inliers": registration.inliers,
-            "reg_reason": registration.reason}
+            "reg_reason": registration.reason}, placed
 
 
 def score_failure(case: Case, lpips_device: str = "cpu") -> dict:

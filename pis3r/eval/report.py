@@ -242,6 +242,8 @@ def plot_quality_vs_parallax(rows: list[dict], path: Path) -> None:
                        if (bins == b).any()]
             if centres:
                 axis.plot(*np.array(centres).T, "-o", color=colour, label=method, markersize=4)
+        # Levels span 0 (rotation) to far beyond 100 % (wide baselines): linear near 0, log beyond.
+        axis.set_xscale("symlog", linthresh=1.0)
         axis.set_xlabel("parallax level P_L (% of the image diagonal)")
         axis.set_ylabel(f"extension {name}")
         axis.grid(alpha=0.3)

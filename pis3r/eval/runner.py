@@ -15,6 +15,7 @@ parallax level estimated from the inputs and the previews of GT, reference and t
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ import numpy as np
 
 from pis3r.errors import InputError, Pis3rError
 from pis3r.eval import metrics
-from pis3r.eval.baselines import GEOMETRY_METHODS, METHODS, MethodFailure, run_method
+from pis3r.eval.baselines import CAMERA_METHODS, METHODS, MethodFailure, run_method
 from pis3r.eval.protocol import (
     Case,
     CaseSpec,
@@ -33,7 +34,7 @@ from pis3r.eval.protocol import (
     load_case,
     place,
     pose_error,
-    register,
+    register_and_score,
     score_failure,
     score_geometry,
     score_placed,
@@ -115,17 +116,20 @@ def evaluate_case_info(spec: CaseSpec, config: EvalConfig) -> TaskResult:
 
 def evaluate_method(spec: CaseSpec, method: str, config: EvalConfig) -> TaskResult:
     """Run ``method`` on one case and score it: the paper's registered protocol, the exact
-    offset (methods that export it), geometry (GT cameras + a method in ``GEOMETRY_METHODS``),
+    offset (methods that export it), geometry (GT cameras + a method in ``CAMERA_METHODS``),
     or NIQE / PIQE without ground truth. Returns the row and a preview of the result."""
     case = _load(spec, config)
-    geometry = case.cameras is not None and method in GEOMETRY_METHODS and config.ground_truth
+    geometry = case.cameras is not None and method in CAMERA_METHODS and config.ground_truth
     row = {**_case_fields(spec), "method": method}
     try:
         output = run_method(method, case.reference, case.target, config.timeout, config.threads, geometry)
     except MethodFailure as exc:
         row.update(status="failed", failure=str(exc), seconds=math.nan, registered=False, reg_reason=str(exc))
         if config.ground_truth:
-            row.update(score_failure(case, config.lpips_device))
+            failure = score_failure(case, config.lpips_device)
+            row.update(failure)
+            if method in CAMERA_METHODS:  # both protocols score a failure the same
+                row.update({f"exact_{k}": v for k, v in failure.items()})
         return TaskResult(row, {})
     canvas = output.canvas
     row.update(status="ok", failure="", seconds=output.seconds)
@@ -133,14 +137,8 @@ def evaluate_method(spec: CaseSpec, method: str, config: EvalConfig) -> TaskResu
         row.update(niqe=metrics.niqe(canvas.image), piqe=metrics.piqe(canvas.image))
         return TaskResult(row, {f"{method}.png": _preview(canvas.image)})
 
-    registration = register(canvas.image, canvas.filled, case)
-    row.update(registered=registration.ok, reg_inliers=registration.inliers, reg_reason=registration.reason)
-    if registration.ok:
-        placed = place(canvas.image, canvas.filled, registration.homography, case)
-        row.update(score_placed(placed, case, lpips_device=config.lpips_device))
-    else:
-        placed = None
-        row.update(score_failure(case, config.lpips_device))
+    scores, placed = register_and_score(canvas.image, canvas.filled, case, config.lpips_device)
+    row.update(scores)
     if canvas.offset is not None:
         # Methods that know where the reference landed are also scored without registration.
         placed = place(canvas.image, canvas.filled, exact_homography(canvas.offset, case), case)
@@ -241,6 +239,7 @@ def run_evaluation(
     if todo:
         cluster = None if scheduler else LocalCluster(
             n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
+            silence_logs=logging.ERROR,  # the progress bar says what happens; worker chatter does not
         )
         with Client(scheduler or cluster) as client:
             futures = {client.submit(_task, spec, method, config, pure=False): (spec.name, method)
