@@ -64,9 +64,11 @@ class StitchResult:
             **self.camera.to_dict(),
             "ref_offset": [int(self.ref_offset[0]), int(self.ref_offset[1])],
             "ref_index": self.ref_index,
-            "convention": "OpenCV pinhole: x_cam = R @ x_world + t, u = K @ x_cam / z; world = camera of input 0",
+            "convention": "OpenCV pinhole: x_cam = R @ x_world + t, u = K @ x_cam / z; the world frame is "
+            "the camera of the first reconstructed image (the reference; input 0 with --ref all)",
             "inputs": [
-                {"name": view.name, **view.camera.to_dict()} for view in self.scene.views
+                {"index": index, "name": view.name, **view.camera.to_dict()}
+                for index, view in zip(self.scene.info.get("input_indices", range(len(self.scene))), self.scene.views)
             ],
         }
 
@@ -192,17 +194,24 @@ def stitch(
     order = list(range(len(photos))) if ref == "all" else [int(ref)] + [i for i in range(len(photos)) if i != int(ref)]
     with timer.stage("reconstruct"):
         scene = create_backend(backend_name, options).reconstruct([photos[i] for i in order])
-    scene = Scene([scene.views[order.index(i)] for i in range(len(photos))], scene.info)
+    # Back to input order; a backend may have dropped views it could not register.
+    kept = [order[k] for k in scene.info.get("view_indices", range(len(order)))]
+    inputs, views = zip(*sorted(zip(kept, scene.views), key=lambda pair: pair[0]))
+    scene = Scene(list(views), {**scene.info, "input_indices": list(inputs)})
+    for dropped in scene.info.get("dropped", []):
+        dropped["index"] = order[dropped["index"]]
+        warnings.append(f"dropped image {dropped['index']} ({dropped['name']}): {dropped['reason']}")
+        timer.say(warnings[-1])
     with timer.stage("parallax"):
         parallax = scene.info.get("parallax") or estimate_parallax(photos[order[0]].pixels, photos[order[1]].pixels)
     timer.say(f"parallax: {parallax.label} (level {parallax.level:.2f})")
 
-    refs = range(len(photos)) if ref == "all" else [int(ref)]
+    refs = inputs if ref == "all" else [int(ref)]
     results = []
     for index in refs:
         sub = StageTimer(quiet=quiet, prefix=f"ref {index}: " if ref == "all" else "")
         with sub.stage("reproject"):
-            canvas = reproject_to_canvas(scene, index, max_canvas_scale, options.device)
+            canvas = reproject_to_canvas(scene, inputs.index(index), max_canvas_scale, options.device)
         with sub.stage("fill holes"):
             filled = fill_holes(canvas.image, canvas.occupied, radius=hole_radius)
         with sub.stage("blend"):
@@ -243,6 +252,7 @@ def _report(scene, backend_name, parallax: ParallaxEstimate, canvas, mask, secon
         },
         "dropped_points": canvas.dropped_points,
         "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in scene.views],
+        "dropped": info.get("dropped", []),
         "warnings": warnings + list(info.get("warnings", [])),
         "details": {k: v for k, v in info.items() if k in ("model_reason", "pose", "depth")},
     }

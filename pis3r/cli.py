@@ -30,6 +30,9 @@ class Pis3rGroup(click.Group):
         except KeyboardInterrupt:
             click.echo("pis3r: interrupted", err=True)
             sys.exit(130)
+        except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
+            # click's own exits (--help, usage errors) are handled by click itself.
+            raise
         except Exception as exc:
             # A bug, not a user error: still one line, with the way to get the details.
             if os.environ.get("PIS3R_DEBUG"):

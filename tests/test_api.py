@@ -4,6 +4,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 import pis3r
@@ -36,3 +37,43 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     out = tmp_path / "out" / "python"
     assert {p.name for p in out.iterdir()} >= {"stitched.png", "mask.png", "camera.json", "report.json", "points.ply"}
     assert {p.name for p in (out / "sparse").iterdir()} == {"cameras.txt", "images.txt", "points3D.txt"}
+
+
+def test_an_image_that_cannot_be_registered_is_dropped_with_its_reason(small_pair):
+    crops = small_pair
+    unrelated = np.random.default_rng(0).integers(0, 255, (160, 190, 3), dtype=np.uint8)
+    results = pis3r.stitch([crops[0], unrelated, crops[1]], ref="all", backend="classical")
+    assert [r.ref_index for r in results] == [0, 2]
+    report = results[0].report
+    assert [d["index"] for d in report["dropped"]] == [1]
+    assert "do not overlap enough" in report["dropped"][0]["reason"]
+    assert any("dropped image 1" in w for w in report["warnings"])
+    assert [c["index"] for c in results[0].camera_json()["inputs"]] == [0, 2]
+
+
+def test_large_inputs_are_downscaled_and_the_report_says_so(small_pair, monkeypatch):
+    from pis3r import api
+
+    monkeypatch.setattr(api, "MAX_INPUT_PIXELS", 20_000)
+    result = pis3r.stitch(list(small_pair), backend="classical")
+    assert any("downscaled" in w for w in result.report["warnings"])
+    view = result.scene.views[0].image
+    assert view.shape[0] * view.shape[1] <= 20_000
+
+
+def test_reference_index_and_report(small_pair):
+    result = pis3r.stitch(list(small_pair), ref=1, backend="classical", blend="none")
+    assert result.ref_index == 1
+    ox, oy = result.ref_offset
+    h, w = small_pair[1].shape[:2]
+    np.testing.assert_allclose(result.image[oy:oy + h, ox:ox + w], small_pair[1] / 255.0, atol=1e-6)
+    assert result.report["parallax"]["class"] == "rotation"
+    assert result.report["model"] == "homography"
+    assert sum(result.report["fractions"].values()) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_bad_reference_index(small_pair):
+    from pis3r.errors import InputError
+
+    with pytest.raises(InputError):
+        pis3r.stitch(list(small_pair), ref=5)

@@ -10,15 +10,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from click.testing import CliRunner
 from skimage import data
+
+from pis3r.cli import main
 
 from tests.conftest import needs_real_data, real_pairs
 
 PIS3R = [sys.executable, "-m", "pis3r.cli"]
 
 
-def run(*args, timeout=300):
+def run_process(*args, timeout=300):
+    """A real `pis3r` process: exit code and stderr exactly as a user sees them."""
     return subprocess.run([*PIS3R, *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def run(*args):
+    """The same command line in this process (no interpreter start-up per call)."""
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    if result.exception is not None and not isinstance(result.exception, SystemExit):
+        raise result.exception
+    return subprocess.CompletedProcess(args, result.exit_code, result.stdout, result.stderr)
 
 
 def assert_clean_failure(proc, code=None, message=None):
@@ -68,7 +80,7 @@ def check_outputs(outdir: Path, ref_image: np.ndarray):
 
 def test_stitch_writes_consistent_outputs(overlapping_pair, tmp_path):
     a, b = overlapping_pair
-    proc = run("stitch", a, b, "-o", tmp_path / "out", "--backend", "classical", "--ply")
+    proc = run_process("stitch", a, b, "-o", tmp_path / "out", "--backend", "classical", "--ply")
     assert proc.returncode == 0, proc.stderr
     assert "[pis3r] reconstruct" in proc.stderr
     camera, report = check_outputs(tmp_path / "out", np.asarray(Image.open(a).convert("RGB")))
@@ -123,7 +135,7 @@ def test_fewer_than_two_images(overlapping_pair, tmp_path):
 def test_corrupt_empty_truncated(overlapping_pair, tmp_path, content):
     bad = tmp_path / "bad.jpg"
     bad.write_bytes(content)
-    proc = run("stitch", overlapping_pair[0], bad, "-o", tmp_path / "out")
+    proc = run_process("stitch", overlapping_pair[0], bad, "-o", tmp_path / "out")
     assert_clean_failure(proc, 2)
     assert not (tmp_path / "out").exists()
 
@@ -197,7 +209,7 @@ def test_different_sizes(tmp_path):
 def test_unwritable_output(overlapping_pair, tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    proc = run("stitch", *overlapping_pair, "-o", blocker / "out", "--quiet")
+    proc = run_process("stitch", *overlapping_pair, "-o", blocker / "out", "--quiet")
     assert_clean_failure(proc, 5, "cannot write")
 
 
@@ -210,3 +222,14 @@ def test_classify_prints_class_and_level(overlapping_pair):
     proc = run("classify", *overlapping_pair)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("pure rotation") and "P_L=" in proc.stdout
+
+
+@pytest.mark.parametrize("command", ["stitch", "batch", "serve"])
+def test_subcommand_help_exits_cleanly(command):
+    from click.testing import CliRunner
+
+    from pis3r.cli import main
+
+    run = CliRunner().invoke(main, [command, "--help"])
+    assert run.exit_code == 0 and "internal error" not in run.output, run.output
+    assert {"stitch": "--colmap", "batch": "--scheduler", "serve": "--port"}[command] in run.output

@@ -1,7 +1,6 @@
-"""COLMAP text export read back by pycolmap, and points.ply read back by Open3D."""
+"""COLMAP text export read back by pycolmap, and points.ply read back by a strict PLY parser."""
 
 import numpy as np
-import open3d
 import pycolmap
 import pytest
 
@@ -45,7 +44,7 @@ def test_pycolmap_reads_cameras_poses_and_points(small_result, tmp_path):
     assert np.all((sample >= lo - 1e-4) & (sample <= hi + 1e-4))
 
 
-def test_cli_writes_colmap_and_a_ply_open3d_reads(small_pair, tmp_path):
+def test_cli_writes_colmap_and_a_strictly_valid_ply(small_pair, tmp_path):
     from click.testing import CliRunner
     from PIL import Image
 
@@ -61,8 +60,27 @@ def test_cli_writes_colmap_and_a_ply_open3d_reads(small_pair, tmp_path):
     assert run.exit_code == 0, run.output
     model = pycolmap.Reconstruction(str(out / "sparse"))
     assert sorted(image.name for image in model.images.values()) == ["stitched.png", "view_0.png", "view_1.png"]
-    cloud = open3d.io.read_point_cloud(str(out / "points.ply"), format="ply")
-    points, colors = np.asarray(cloud.points), np.asarray(cloud.colors)
+    points, colors = read_ply_strict(out / "points.ply")
     assert len(points) > 1000 and colors.shape == points.shape and np.isfinite(points).all()
-    assert 0.0 <= colors.min() and colors.max() <= 1.0 and colors.std() > 0.01
+    assert colors.std() > 3
     assert model.num_points3D() == min(len(points), 100_000)
+
+
+def read_ply_strict(path):
+    """Parse a binary little-endian xyz+rgb PLY, failing on anything that deviates from
+    the format (Open3D is not a dependency: it weighs about 1 GB with what it pulls in)."""
+    data = path.read_bytes()
+    header, _, body = data.partition(b"end_header\n")
+    lines = header.decode("ascii").splitlines()
+    assert lines[0] == "ply" and lines[1] == "format binary_little_endian 1.0"
+    assert lines[2].startswith("element vertex ")
+    count = int(lines[2].split()[2])
+    assert lines[3:] == [
+        "property float x", "property float y", "property float z",
+        "property uchar red", "property uchar green", "property uchar blue",
+    ]
+    record = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    assert len(body) == count * record.itemsize
+    table = np.frombuffer(body, record)
+    return (np.stack([table["x"], table["y"], table["z"]], 1),
+            np.stack([table["r"], table["g"], table["b"]], 1).astype(float))

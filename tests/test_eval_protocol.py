@@ -91,7 +91,8 @@ def test_shared_lpips_map_gives_the_masked_metric():
     case, _ = rotation_pair()
     noisy = np.clip(case.gt + np.random.default_rng(1).normal(0, 0.05, case.gt.shape), 0, 1).astype(np.float32)
     region = ~case.reference_region
-    assert lpips_map(noisy, case.gt)[region].mean() == pytest.approx(metrics.lpips(noisy, case.gt, mask=region), rel=1e-5)
+    expected = metrics.lpips(noisy, case.gt, mask=region)
+    assert lpips_map(noisy, case.gt)[region].mean() == pytest.approx(expected, rel=1e-5)
 
 
 def test_five_pixel_shift_is_registered_back():
@@ -137,7 +138,8 @@ def test_apap_on_pure_rotation_matches_the_gt_homography_warp():
     height, width = case.gt.shape[:2]
     # The GT warp: the target taken back to the GT camera through the exact homography.
     expected = cv2.warpPerspective(case.target, np.linalg.inv(H), (width, height), flags=cv2.INTER_LINEAR)
-    covered = cv2.warpPerspective(np.ones(case.target.shape[:2], np.float32), np.linalg.inv(H), (width, height)) >= 0.999
+    ones = np.ones(case.target.shape[:2], np.float32)
+    covered = cv2.warpPerspective(ones, np.linalg.inv(H), (width, height)) >= 0.999
     overlap = covered & placed.filled
     assert overlap.sum() > 0.9 * covered.sum()
     mse = float(np.mean((placed.image[overlap] - expected[overlap]) ** 2))

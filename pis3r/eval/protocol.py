@@ -545,7 +545,10 @@ def register_and_score(image: np.ndarray, filled: np.ndarray, case: Case, lpips_
     registered result on the GT grid (``None`` when registration failed)."""
     registration = register(image, filled, case)
     placed = place(image, filled, registration.homography, case) if registration.ok else None
-    scores = score_placed(placed, case, lpips_device=lpips_device) if placed else score_failure(case, lpips_device)
+    if placed is not None:
+        scores = score_placed(placed, case, lpips_device=lpips_device)
+    else:
+        scores = score_failure(case, lpips_device)
     return {**scores, "registered": registration.ok, "reg_inliers": registration.inliers,
             "reg_reason": registration.reason}, placed
 

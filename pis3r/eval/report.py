@@ -138,7 +138,8 @@ def render_markdown(rows: list[dict], title: str) -> str:
         ]
     for dataset in sorted({r["dataset"] for r in method_rows}):
         subset = [r for r in method_rows if r["dataset"] == dataset]
-        groups = [("all pairs", subset)] + [(c, [r for r in subset if r["parallax_class"] == c]) for c in _classes(subset)]
+        groups = [("all pairs", subset)]
+        groups += [(c, [r for r in subset if r["parallax_class"] == c]) for c in _classes(subset)]
         if ground_truth:
             out += [f"## {dataset}: paper's Table 3 layout (registered, valid pixels)", ""]
             for name, group in groups:
@@ -181,7 +182,10 @@ def _timing_table(rows: list[dict], methods: list[str]) -> list[str]:
 
 
 def _per_case_table(rows: list[dict], ground_truth: bool) -> list[str]:
-    keys = ("bar_psnr", "bar_ssim", "bar_lpips", "coverage", "ext_psnr", "valid_psnr") if ground_truth else ("piqe", "niqe")
+    if ground_truth:
+        keys = ("bar_psnr", "bar_ssim", "bar_lpips", "coverage", "ext_psnr", "valid_psnr")
+    else:
+        keys = ("piqe", "niqe")
     lines = ["| case | class | method | " + " | ".join(keys) + " | registered | s | note |",
              "|---|---|---|" + "---:|" * len(keys) + "---|---:|---|"]
     for r in rows:

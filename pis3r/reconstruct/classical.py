@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import Camera, intrinsics
-from pis3r.errors import InputError, NotEnoughOverlapError, ReconstructionError
+from pis3r.errors import InputError, NotEnoughOverlapError, Pis3rError, ReconstructionError
 from pis3r.features import Matches, detect, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
@@ -67,42 +67,64 @@ class ClassicalReconstructor:
         self.options = options
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
+        """Every photo registered to ``photos[0]``; with three or more photos, one that
+        cannot be registered is dropped (``info["dropped"]``) instead of failing the rest."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = [detect(p.pixels) for p in photos]
         ref = photos[0]
-        info: dict = {"backend": self.name, "warnings": []}
+        info: dict = {"backend": self.name, "warnings": [], "dropped": []}
         focal_ref, source = self._known_focal(ref)
-        views = [None] * len(photos)
-        ref_depths = []
+        views, indices, ref_depth = [], [], None
         for j in range(1, len(photos)):
-            matches = match(features[0], features[j])
-            if len(matches) < MIN_MATCHES:
-                raise NotEnoughOverlapError(
-                    f"these images do not overlap enough to stitch: {len(matches)} matches"
-                    + (f" between {ref.name} and {photos[j].name}" if len(photos) > 2 else "")
+            try:
+                view_ref, view_j, pair_info, focal_ref, source = self._register(
+                    ref, photos[j], features[0], features[j], focal_ref, source, ref_depth, len(photos) > 2
                 )
-            self._reject_identical(matches, ref, photos[j])
-            pair = self._pair(ref, photos[j], matches, focal_ref, source)
-            if j == 1:
-                info.update(pair["info"])
-                focal_ref, source = pair["focal_ref"], pair["focal_source"]
+            except Pis3rError as exc:
+                if len(photos) == 2:
+                    raise
+                info["dropped"].append({"index": j, "name": photos[j].name, "reason": str(exc)})
+                continue
+            if ref_depth is None:
+                info.update({**pair_info, "warnings": info["warnings"] + pair_info["warnings"], "dropped": info["dropped"]})
+                views.append(view_ref)
+                indices.append(0)
+                ref_depth = view_ref.depth
             else:
-                info["warnings"] += pair["info"]["warnings"]
-            view_ref, view_j = pair["views"]
-            if ref_depths:
-                # Each pair has its own unknown scale; bring it to the first pair's.
-                ratio = _median_ratio(ref_depths[0], view_ref.depth)
-                view_j.camera = Camera(view_j.camera.K, view_j.camera.R, view_j.camera.t * ratio,
-                                       view_j.camera.width, view_j.camera.height)
-                view_j.depth = view_j.depth * ratio
-            else:
-                views[0] = view_ref
-            ref_depths.append(view_ref.depth)
-            views[j] = view_j
+                info["warnings"] += pair_info["warnings"]
+            views.append(view_j)
+            indices.append(j)
+        if len(views) < 2:
+            reasons = "; ".join(f"{d['name']}: {d['reason']}" for d in info["dropped"])
+            raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
         info["focal"] = float(focal_ref)
         info["focal_source"] = source
+        info["view_indices"] = indices
         return Scene(views, info)
+
+    def _register(self, ref, other, features_ref, features_other, focal_ref, source, ref_depth, named):
+        """One pair: ``(view_ref, view_other, info, focal_ref, focal_source)``; the other
+        view is brought to the scale of ``ref_depth`` (the first pair's) when given."""
+        matches = match(features_ref, features_other)
+        if len(matches) < MIN_MATCHES:
+            raise NotEnoughOverlapError(
+                f"these images do not overlap enough to stitch: {len(matches)} matches"
+                + (f" between {ref.name} and {other.name}" if named else "")
+            )
+        self._reject_identical(matches, ref, other)
+        pair = self._pair(ref, other, matches, focal_ref, source)
+        view_ref, view_other = pair["views"]
+        if ref_depth is not None:
+            # Each pair has its own unknown scale; tie it to the first pair's through the
+            # reference depths both pairs measured.
+            ratio = _median_ratio(ref_depth, view_ref.depth)
+            if ratio is None:
+                raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
+            cam = view_other.camera
+            view_other.camera = Camera(cam.K, cam.R, cam.t * ratio, cam.width, cam.height)
+            view_other.depth = view_other.depth * ratio
+        return view_ref, view_other, pair["info"], pair["focal_ref"], pair["focal_source"]
 
     # -- focal --------------------------------------------------------------------------
     def _known_focal(self, photo: Photo) -> tuple[float | None, str]:
@@ -297,8 +319,9 @@ def _nearest_rotation(M: np.ndarray) -> np.ndarray:
     return R * np.sign(np.linalg.det(R))
 
 
-def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float:
+def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float | None:
+    """Median of ``reference / other`` where both depths exist; None with too little support."""
     both = (reference > 0) & (other > 0)
-    if both.sum() < 10:
-        return 1.0
+    if both.sum() < 100:
+        return None
     return float(np.median(reference[both] / other[both]))

@@ -11,7 +11,8 @@ by the same code that stitches at inference:
 2. **Reference view.** A window of that frame (30-65 % per side, anywhere):
    its pixels are copied verbatim into the canvas, exactly as stitching does.
 3. **Source view.** A second camera from one of the parallax classes (pure
-   rotation, slight, very large baseline) sees the 2.5D world; its image is
+   rotation, slight, very large baseline; focal 0.5-1.25x the frame's, so its
+   points land up to 2x apart on the canvas) sees the 2.5D world; its image is
    forward-splatted at 2x supersampling with a z-buffer. Its photo then gets its
    own exposure / white balance / vignetting, sensor noise, JPEG, blur and
    sometimes motion blur (seams, and the GoPro stage's blur).
@@ -179,7 +180,9 @@ def _source_camera(rng: np.random.Generator, frame: Camera, median_depth: float)
     direction = np.array([rng.uniform(-1, 1), rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3)])
     centre = baseline * median_depth * direction / np.linalg.norm(direction)
     K = frame.K.copy()
-    K[:2, :2] *= rng.uniform(0.75, 1.25)
+    # Down to half the frame's focal: the source's points then land up to 2x apart on
+    # the canvas, the dense lattice of cracks a zoomed or distant second photo leaves.
+    K[:2, :2] *= rng.uniform(0.5, 1.25)
     return Camera(K, R, -R @ centre, frame.width, frame.height), parallax
 
 

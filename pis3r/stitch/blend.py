@@ -51,16 +51,21 @@ def local_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray
     the overlap do not bias it; ``1`` where the overlap gives no support.
     """
     weight = under_valid.astype(np.float32)
+    h, w = weight.shape
+    # The gain is smooth: measure it on a grid a few pixels per sigma apart, then upsample.
+    factor = max(1, int(sigma // 4))
+    small = (max(1, w // factor), max(1, h // factor))
 
     def smooth(a: np.ndarray) -> np.ndarray:
-        return cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        shrunk = cv2.resize(a, small, interpolation=cv2.INTER_AREA)
+        return cv2.GaussianBlur(shrunk, (0, 0), sigma / factor, borderType=cv2.BORDER_REFLECT)
 
     support = smooth(weight)[..., None]
     numerator = smooth(reference * weight[..., None])
     denominator = smooth(under * weight[..., None])
     with np.errstate(divide="ignore", invalid="ignore"):
         gain = np.where((support > 1e-3) & (denominator > 1e-3), numerator / denominator, 1.0)
-    return np.clip(gain, *GAIN_RANGE).astype(np.float32)
+    return cv2.resize(np.clip(gain, *GAIN_RANGE).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def laplacian_blend(a: np.ndarray, b: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray:
@@ -105,21 +110,29 @@ def blend_reference_border(
         return image
     h, w = under_valid.shape
     x0, y0 = ref_offset
-    window = (slice(y0, y0 + h), slice(x0, x0 + w))
     band = max(4.0, BAND_FRACTION * min(h, w))
-    reference = image[window]
+    levels = int(np.clip(np.log2(band), 1, MAX_MULTIBAND_LEVELS))
+    # Farther than a band from the reference the weight is 0: only the box around it
+    # (plus the pyramid's reach) is blended, which bounds memory on large canvases.
+    margin = int(np.ceil(band)) + (2**levels if method == "multiband" else 0)
+    top, left = max(0, y0 - margin), max(0, x0 - margin)
+    box = (slice(top, min(image.shape[0], y0 + h + margin)), slice(left, min(image.shape[1], x0 + w + margin)))
+    crop = image[box]
+    offset = (x0 - left, y0 - top)
+    window = (slice(offset[1], offset[1] + h), slice(offset[0], offset[0] + w))
+    reference = crop[window]
 
-    # Gain of the nearest reference pixel, carried outward: clamp canvas coordinates into the window.
+    # Gain of the nearest reference pixel, carried outward: clamp coordinates into the window.
     gain = local_gain(reference, under, under_valid, sigma=band / 2)
-    rows = np.clip(np.arange(image.shape[0]) - y0, 0, h - 1)
-    cols = np.clip(np.arange(image.shape[1]) - x0, 0, w - 1)
-    toned = np.clip(image * gain[rows[:, None], cols[None, :]], 0.0, 1.0)
+    rows = np.clip(np.arange(crop.shape[0]) - offset[1], 0, h - 1)
+    cols = np.clip(np.arange(crop.shape[1]) - offset[0], 0, w - 1)
+    toned = np.clip(crop * gain[rows[:, None], cols[None, :]], 0.0, 1.0)
     toned[window] = reference
     # The original layer shows, beneath the reference, what the other views saw there.
-    original = image.copy()
+    original = crop.copy()
     original[window] = np.where(under_valid[..., None], under, reference)
 
-    distance = border_distance(image.shape[:2], ref_offset, (w, h))
+    distance = border_distance(crop.shape[:2], offset, (w, h))
     if into_reference:
         # The ramp spans a band on each side of the border.
         weight = np.clip(0.5 + distance / (2 * band), 0.0, 1.0)
@@ -128,11 +141,10 @@ def blend_reference_border(
     if method == "feather":
         blended = weight[..., None] * toned + (1 - weight[..., None]) * original
     else:
-        levels = int(np.clip(np.log2(band), 1, MAX_MULTIBAND_LEVELS))
         blended = laplacian_blend(toned, original, weight, levels)
 
-    changeable = editable.copy()
+    changeable = editable[box].copy()
     changeable[window] = into_reference
     out = image.copy()
-    out[changeable] = np.clip(blended[changeable], 0.0, 1.0)
+    out[box][changeable] = np.clip(blended[changeable], 0.0, 1.0)
     return out
