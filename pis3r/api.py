@@ -25,10 +25,14 @@ from pis3r.scene import Scene
 from pis3r.stitch.blend import BLEND_METHODS, blend_reference_border
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.reproject import reproject_to_canvas
+from pis3r.refine import default_weights_path, refine_canvas
 
 # Inputs above this are downscaled before anything else (memory and time grow
 # with pixels; the geometry does not need more).
 MAX_INPUT_PIXELS = 50_000_000
+
+# Chosen by the refinement ablation (pis3r/refine/weights/MODEL_CARD.md).
+DEFAULT_REFINE_REGION = "holes"
 
 MASK_PROJECTED = 255
 MASK_INPAINTED = 128
@@ -155,6 +159,10 @@ def stitch(
     depth_fill: str = "planar",
     blend: str = "feather",
     blend_into_reference: bool = False,
+    refine: str = "none",
+    refine_region: str = DEFAULT_REFINE_REGION,
+    refine_steps: int = 5,
+    refine_weights: str | os.PathLike | None = None,
     quiet: bool = True,
 ) -> StitchResult | list[StitchResult]:
     """Stitch photos of one scene into the view of one reference camera.
@@ -170,7 +178,11 @@ def stitch(
     (``"planar"``: local planes continue; ``"harmonic"``: smooth inverse depth).
     ``blend``: ``"feather"``, ``"multiband"`` or ``"none"`` across the reference border
     (:mod:`pis3r.stitch.blend`); the reference's pixels stay verbatim unless
-    ``blend_into_reference``. ``quiet=False`` prints one progress line per stage on stderr.
+    ``blend_into_reference``. ``refine``: ``"rddm"`` (the shipped diffusion refiner,
+    :mod:`pis3r.refine`), ``"none"``, or ``"auto"`` (rddm when its weights are installed);
+    ``refine_region``: ``"holes"`` (inpainted and low-quality pixels) or ``"all"``;
+    ``refine_steps``: sampling steps; ``refine_weights``: another weight file.
+    ``quiet=False`` prints one progress line per stage on stderr.
 
     Returns a :class:`StitchResult` (a list of them for ``ref="all"``) whose ``image`` is
     ``(H, W, 3)`` float32 RGB in [0, 1] with ``H, W`` at most ``max_canvas_scale`` times the
@@ -188,6 +200,7 @@ def stitch(
         focal=focal, device=resolve_device(device), weights=weights, conf_threshold=conf_threshold,
         depth_fill=depth_fill,
     )
+    refine_method = _resolve_refine(refine, refine_weights)
     backend_name = resolve_backend_name(backend, options)
     timer.say(f"backend: {backend_name}" + (" (auto)" if backend == "auto" else ""))
     # The reference defines the world frame, so it goes first.
@@ -222,13 +235,26 @@ def stitch(
         mask = np.full(canvas.source.shape, MASK_BACKGROUND, np.uint8)
         mask[canvas.occupied] = MASK_PROJECTED
         mask[filled.hole] = MASK_INPAINTED
+        if refine_method == "rddm":
+            with sub.stage("refine"):
+                image = refine_canvas(image, mask, refine_region, refine_steps, options.device, refine_weights)
         report = _report(
             scene, backend_name, parallax, canvas, mask, {**timer.seconds, **sub.seconds}, warnings, index
         )
+        report["refine"] = {"method": refine_method, "region": refine_region, "steps": refine_steps}
         results.append(
             StitchResult(image, mask, canvas.camera, canvas.ref_offset, index, scene, report)
         )
     return results if ref == "all" else results[0]
+
+
+def _resolve_refine(refine: str, weights) -> str:
+    """``auto`` -> ``rddm`` when refiner weights are available, else ``none``."""
+    if refine not in ("auto", "rddm", "none"):
+        raise InputError(f"refine must be auto, rddm or none, got {refine!r}")
+    if refine == "auto":
+        return "rddm" if weights is not None or default_weights_path() is not None else "none"
+    return refine
 
 
 def _report(scene, backend_name, parallax: ParallaxEstimate, canvas, mask, seconds, warnings, ref_index) -> dict:

@@ -87,14 +87,23 @@ def _parse_ref(value: str) -> int | str:
               help="Blend the other views toward the reference's colours across its border.")
 @click.option("--blend-into-reference", is_flag=True,
               help="Let the blend enter the reference (by default its pixels stay verbatim).")
+@click.option("--refine", type=click.Choice(["auto", "rddm", "none"]), default="none", show_default=True,
+              help="Diffusion refinement of the canvas: auto = rddm when its weights are installed.")
+@click.option("--refine-region", type=click.Choice(["holes", "all"]), default=None,
+              help="Pixels the refiner may change: inpainted/low-quality ones (holes) or all reprojected ones. "
+                   "Default: the one the ablation chose (see pis3r/refine/weights/MODEL_CARD.md).")
+@click.option("--refine-steps", type=click.IntRange(1, 100), default=5, show_default=True)
+@click.option("--refine-weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Another refiner weight file (safetensors) than the shipped one.")
 @click.option("--ply", is_flag=True, help="Also write points.ply (all views' points, xyz + rgb).")
 @click.option("--colmap", "colmap_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write a COLMAP text model (cameras.txt, images.txt, points3D.txt) into this directory.")
 @click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
 def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device, weights, conf_threshold,
-                   depth_fill, blend, blend_into_reference, ply, colmap_dir, quiet):
+                   depth_fill, blend, blend_into_reference, refine, refine_region, refine_steps, refine_weights,
+                   ply, colmap_dir, quiet):
     """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise)."""
-    from pis3r.api import stitch
+    from pis3r.api import DEFAULT_REFINE_REGION, stitch
 
     result = stitch(
         [str(p) for p in images],
@@ -108,6 +117,10 @@ def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device
         depth_fill=depth_fill,
         blend=blend,
         blend_into_reference=blend_into_reference,
+        refine=refine,
+        refine_region=refine_region or DEFAULT_REFINE_REGION,
+        refine_steps=refine_steps,
+        refine_weights=refine_weights,
         quiet=quiet,
     )
     results = result if isinstance(result, list) else [result]
