@@ -233,3 +233,18 @@ def test_subcommand_help_exits_cleanly(command):
     run = CliRunner().invoke(main, [command, "--help"])
     assert run.exit_code == 0 and "internal error" not in run.output, run.output
     assert {"stitch": "--colmap", "batch": "--scheduler", "serve": "--port"}[command] in run.output
+
+
+def test_refinement_options(small_pair, tmp_path):
+    paths = [save(tmp_path / f"{i}.png", image) for i, image in enumerate(small_pair)]
+    proc = run("stitch", *paths, "-o", tmp_path / "rddm", "--refine", "rddm", "--refine-steps", "2", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads((tmp_path / "rddm" / "report.json").read_text())
+    assert report["refine"] == {"method": "rddm", "region": "holes", "steps": 2}
+    corrupt = tmp_path / "bad.safetensors"
+    corrupt.write_bytes(b"not a safetensors file")
+    proc = run("stitch", *paths, "-o", tmp_path / "bad", "--refine", "rddm", "--refine-weights", corrupt)
+    assert_clean_failure(proc, 4)
+    assert not (tmp_path / "bad").exists()
+    proc = run("stitch", *paths, "-o", tmp_path / "none", "--refine", "none", "--quiet")
+    assert proc.returncode == 0 and json.loads((tmp_path / "none" / "report.json").read_text())["refine"]["method"] == "none"
