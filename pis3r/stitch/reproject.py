@@ -22,6 +22,8 @@ MIN_RELATIVE_DEPTH = 1e-3
 # Relative depth added to a point's footprint pixels, so that exact hits of the
 # same surface win over them while nearer surfaces still occlude farther ones.
 FOOTPRINT_DEPTH_BIAS = 1e-3
+# Points sampled to estimate each view's exposure gain.
+GAIN_SAMPLES = 200_000
 
 
 @dataclass
@@ -53,10 +55,14 @@ class Canvas:
         return self.source >= 0
 
 
-def _scene_points(scene: Scene, ref: Camera, device: torch.device, min_confidence: float):
-    """Stack every view's valid points: reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``."""
+def _scene_points(scene: Scene, ref_index: int, device: torch.device, min_confidence: float):
+    """Stack the valid points of every view but the reference (whose pixels are copied
+    verbatim): reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``."""
+    ref = scene.views[ref_index].camera
     xyz, rgb, owner = [], [], []
     for index, view in enumerate(scene.views):
+        if index == ref_index:
+            continue
         keep = torch.from_numpy(view.valid & (view.confidence >= min_confidence)).to(device)
         if not bool(keep.any()):
             continue
@@ -96,30 +102,25 @@ def _window(coords: torch.Tensor, ref_size: int, limit: int) -> tuple[int, int]:
     return start, start + limit
 
 
-def _match_gains(rgb, owner, ref_x, ref_y, ref_image: np.ndarray, ref_index: int) -> torch.Tensor:
+def _match_gains(rgb, owner, ref_x, ref_y, ref_image: np.ndarray) -> torch.Tensor:
     """Scale each view's colours ``(N, 3)`` by the robust per-channel gain that maps
     them onto the reference image at the pixels ``(ref_x, ref_y)`` where they land."""
     h, w = ref_image.shape[:2]
-    inside = (ref_x >= 0) & (ref_x < w) & (ref_y >= 0) & (ref_y < h)
-    reference = torch.from_numpy(ref_image).to(rgb.device)
-    out = rgb.clone()
-    for view in torch.unique(owner).tolist():
-        if view == ref_index:
-            continue
-        mine = owner == view
-        pairs = mine & inside
-        if int(pairs.sum()) < 100:
-            continue
-        theirs = reference[ref_y[pairs], ref_x[pairs]]
-        ours = rgb[pairs]
-        # Saturated or black pixels carry no information about the gain.
-        usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(dim=1)
-        if int(usable.sum()) < 100:
-            continue
-        ratio = theirs[usable] / ours[usable]
-        gain = ratio.median(dim=0).values.clamp(0.5, 2.0)
-        out[mine] = (rgb[mine] * gain).clamp(0.0, 1.0)
-    return out
+    # A robust median needs far fewer samples than a canvas has points.
+    step = max(1, rgb.shape[0] // GAIN_SAMPLES)
+    sample = torch.arange(0, rgb.shape[0], step, device=rgb.device)
+    x, y, ours, views = ref_x[sample], ref_y[sample], rgb[sample], owner[sample]
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    x, y, ours, views = x[inside], y[inside], ours[inside], views[inside]
+    theirs = torch.from_numpy(ref_image).to(rgb.device)[y, x]
+    # Saturated or black pixels carry no information about the gain.
+    usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(dim=1)
+    gains = torch.ones((int(owner.max()) + 1 if owner.numel() else 1, 3), device=rgb.device)
+    for view in torch.unique(views[usable]).tolist():
+        chosen = usable & (views == view)
+        if int(chosen.sum()) >= 100:
+            gains[view] = (theirs[chosen] / ours[chosen]).median(dim=0).values.clamp(0.5, 2.0)
+    return (rgb * gains[owner.long()]).clamp(0.0, 1.0)
 
 
 def reproject_to_canvas(
@@ -144,7 +145,7 @@ def reproject_to_canvas(
     device = torch.device(device)
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
-    xyz, rgb, owner = _scene_points(scene, ref, device, min_confidence)
+    xyz, rgb, owner = _scene_points(scene, ref_index, device, min_confidence)
 
     z = xyz[:, 2]
     positive = z[z > 0]
@@ -168,13 +169,8 @@ def reproject_to_canvas(
 
     ox, oy = -x0, -y0
     if match_exposure:
-        rgb = _match_gains(rgb, owner, px - ox, py - oy, ref_view.image, ref_index)
+        rgb = _match_gains(rgb, owner, px - ox, py - oy, ref_view.image)
 
-    # The reference's own points land exactly on its pixels, which are copied
-    # verbatim below; only the other views are splatted.
-    others = owner != ref_index
-    px, py, z, rgb, owner = px[others], py[others], z[others], rgb[others], owner[others]
-    step_x, step_y = step_x[others], step_y[others]
     if footprint:
         # Each point also covers the three other pixel centres around its exact
         # position, a little behind itself so exact hits win: this closes the
