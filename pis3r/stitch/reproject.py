@@ -57,9 +57,11 @@ class Canvas:
 
 def _scene_points(scene: Scene, ref_index: int, device: torch.device, min_confidence: float):
     """Stack the valid points of every view but the reference (whose pixels are copied
-    verbatim): reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``."""
+    verbatim): reference-frame xyz ``(N, 3)``, rgb ``(N, 3)``, view ``(N,)``, and
+    ``spread (N,)``: depth in the point's own view times the focal ratio, so that
+    ``spread / z_ref`` is how much the reprojection magnifies that view there."""
     ref = scene.views[ref_index].camera
-    xyz, rgb, owner = [], [], []
+    xyz, rgb, owner, spread = [], [], [], []
     for index, view in enumerate(scene.views):
         if index == ref_index:
             continue
@@ -77,10 +79,32 @@ def _scene_points(scene: Scene, ref_index: int, device: torch.device, min_confid
         xyz.append((pix @ K_inv.T) * depth[:, None] @ R_rel.T + t_rel)
         rgb.append(torch.from_numpy(view.image).to(device)[v, u])
         owner.append(torch.full((len(depth),), index, dtype=torch.int16, device=device))
+        spread.append(depth * float(ref.focal / cam.focal))
     if not xyz:
         empty = torch.zeros((0, 3), device=device)
-        return empty, empty, torch.zeros((0,), dtype=torch.int16, device=device)
-    return torch.cat(xyz), torch.cat(rgb), torch.cat(owner)
+        return empty, empty, torch.zeros((0,), dtype=torch.int16, device=device), torch.zeros(0, device=device)
+    return torch.cat(xyz), torch.cat(rgb), torch.cat(owner), torch.cat(spread)
+
+
+def _footprint(px, py, z, rgb, owner, step_x, step_y, magnification):
+    """Splat each point onto the pixel centres it covers once magnified: the 2x2 block
+    around its exact position, or the 3x3 block where the view is magnified more than
+    twice. Copies sit a little behind the point, so exact hits of the same surface win
+    while nearer surfaces still occlude. All inputs ``(N,)`` (``rgb (N, 3)``)."""
+    behind = z * (1.0 + FOOTPRINT_DEPTH_BIAS)
+    big = magnification > 2.0
+    offsets = [(step_x, 0, None), (0, step_y, None), (step_x, step_y, None)] + [
+        (dx * step_x, dy * step_y, big) for dx, dy in ((-1, 0), (0, -1), (-1, -1), (1, -1), (-1, 1))
+    ]
+    xs, ys, zs, colours, owners = [px], [py], [z], [rgb], [owner]
+    for dx, dy, only in offsets:
+        sel = slice(None) if only is None else only
+        xs.append((px + dx)[sel] if isinstance(dx, torch.Tensor) else px[sel] + dx)
+        ys.append((py + dy)[sel] if isinstance(dy, torch.Tensor) else py[sel] + dy)
+        zs.append(behind[sel])
+        colours.append(rgb[sel])
+        owners.append(owner[sel])
+    return torch.cat(xs), torch.cat(ys), torch.cat(zs), torch.cat(colours), torch.cat(owners)
 
 
 def _window(coords: torch.Tensor, ref_size: int, limit: int) -> tuple[int, int]:
@@ -139,19 +163,20 @@ def reproject_to_canvas(
     ``match_exposure``, every other view's colours are scaled per channel by the gain
     that matches them to the reference where they land inside it, so a different
     exposure does not show as a frame around the reference. With ``footprint``,
-    each point covers the 2x2 pixel centres around it (exact hits first), which
-    closes the cracks of views magnified by the reprojection.
+    each point covers the 2x2 (or, where its view is magnified more than twice, 3x3)
+    pixel centres around it, exact hits first: this closes the cracks of views that
+    the reprojection magnifies.
     """
     device = torch.device(device)
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
-    xyz, rgb, owner = _scene_points(scene, ref_index, device, min_confidence)
+    xyz, rgb, owner, spread = _scene_points(scene, ref_index, device, min_confidence)
 
     z = xyz[:, 2]
     positive = z[z > 0]
     min_z = MIN_RELATIVE_DEPTH * float(positive.median()) if positive.numel() else 0.0
     front = z > max(min_z, 1e-9)
-    xyz, rgb, owner, z = xyz[front], rgb[front], owner[front], z[front]
+    xyz, rgb, owner, spread, z = xyz[front], rgb[front], owner[front], spread[front], z[front]
     K = torch.as_tensor(ref.K, dtype=torch.float32, device=device)
     u = K[0, 0] * xyz[:, 0] / z + K[0, 2]
     v = K[1, 1] * xyz[:, 1] / z + K[1, 2]
@@ -166,20 +191,14 @@ def reproject_to_canvas(
     px, py, z, rgb, owner = px[inside], py[inside], z[inside], rgb[inside], owner[inside]
     step_x = torch.where(u[inside] - x0 >= px, 1, -1)
     step_y = torch.where(v[inside] - y0 >= py, 1, -1)
+    magnification = spread[inside] / z
 
     ox, oy = -x0, -y0
     if match_exposure:
         rgb = _match_gains(rgb, owner, px - ox, py - oy, ref_view.image)
 
     if footprint:
-        # Each point also covers the three other pixel centres around its exact
-        # position, a little behind itself so exact hits win: this closes the
-        # one-pixel cracks a magnified view leaves between its points.
-        behind = z * (1.0 + FOOTPRINT_DEPTH_BIAS)
-        px = torch.cat([px, px + step_x, px, px + step_x])
-        py = torch.cat([py, py, py + step_y, py + step_y])
-        z = torch.cat([z, behind, behind, behind])
-        rgb, owner = rgb.repeat(4, 1), owner.repeat(4)
+        px, py, z, rgb, owner = _footprint(px, py, z, rgb, owner, step_x, step_y, magnification)
         keep = (px >= 0) & (px < width) & (py >= 0) & (py < height)
         px, py, z, rgb, owner = px[keep], py[keep], z[keep], rgb[keep], owner[keep]
 
