@@ -192,13 +192,14 @@ def _per_case_table(rows: list[dict], ground_truth: bool) -> list[str]:
         keys = ("bar_psnr", "bar_ssim", "bar_lpips", "coverage", "ext_psnr", "valid_psnr")
     else:
         keys = ("piqe", "niqe")
-    lines = ["| case | class | method | " + " | ".join(keys) + " | registered | s | note |",
-             "|---|---|---|" + "---:|" * len(keys) + "---|---:|---|"]
+    flags = ("registered",) if ground_truth else ()
+    lines = ["| case | class | method | " + " | ".join(keys + flags) + " | s | note |",
+             "|---|---|---|" + "---:|" * len(keys) + "---|" * len(flags) + "---:|---|"]
     for r in rows:
-        cells = [_cell(r.get(k)) for k in keys]
+        cells = [_cell(r.get(k)) for k in keys] + ["yes" if r.get(k) else "no" for k in flags]
         note = r.get("failure") or r.get("reg_reason") or ""
         lines.append(f"| {r['case']} | {r['parallax_class']} | {r['method']} | " + " | ".join(cells)
-                     + f" | {'yes' if r.get('registered') else 'no'} | {_cell(r.get('seconds'), '{:.1f}')} | {note} |")
+                     + f" | {_cell(r.get('seconds'), '{:.1f}')} | {note} |")
     return lines
 
 
