@@ -50,12 +50,6 @@ def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale
 
 
-def _scaled_K(K: np.ndarray, scale: float) -> np.ndarray:
-    out = K.copy()
-    out[:2, :2] *= scale
-    out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
-    return out
-
 
 @register("classical")
 class ClassicalReconstructor:
@@ -247,7 +241,8 @@ class ClassicalReconstructor:
     def _views_3d(self, ref: Photo, other: Photo, K_a, K_b, R, t, H, inliers: Matches):
         img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
         img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
-        Kw_a, Kw_b = _scaled_K(K_a, s_a), _scaled_K(K_b, s_b)
+        Kw_a = Camera.identity(K_a, ref.width, ref.height).scaled(s_a).K
+        Kw_b = Camera.identity(K_b, other.width, other.height).scaled(s_b).K
         S_a = np.diag([s_a, s_a, 1.0])
         S_b = np.diag([s_b, s_b, 1.0])
         H_work = S_b @ H @ np.linalg.inv(S_a)
