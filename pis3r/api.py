@@ -96,8 +96,8 @@ class StitchResult:
         payload = {
             "stitched.png": io.encode_png(self.image),
             "mask.png": io.encode_png(self.mask),
-            "camera.json": _json_bytes(self.camera_json()),
-            "report.json": _json_bytes(self.report),
+            "camera.json": io.encode_json(self.camera_json()),
+            "report.json": io.encode_json(self.report),
         }
         if ply:
             payload["points.ply"] = io.encode_ply(*self.point_cloud())
@@ -110,12 +110,6 @@ class StitchResult:
 
             written += write_colmap_text(self, colmap)
         return written
-
-
-def _json_bytes(data: dict) -> bytes:
-    import json
-
-    return (json.dumps(data, indent=2, allow_nan=False) + "\n").encode()
 
 
 def load_photos(images: Sequence[io.ImageLike], warnings: list[str]) -> list[io.Photo]:

@@ -230,8 +230,13 @@ def write_png(path: Path, image: np.ndarray) -> None:
     write_bytes(path, encode_png(image))
 
 
+def encode_json(data: dict) -> bytes:
+    """Indented UTF-8 JSON; NaN/inf are refused, since they are not JSON."""
+    return (json.dumps(data, indent=2, allow_nan=False) + "\n").encode()
+
+
 def write_json(path: Path, data: dict) -> None:
-    write_bytes(path, (json.dumps(data, indent=2, allow_nan=False) + "\n").encode())
+    write_bytes(path, encode_json(data))
 
 
 def encode_ply(points: np.ndarray, colors: np.ndarray) -> bytes:
