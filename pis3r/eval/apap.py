@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.io import to_uint8
+from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
 
 MIN_MATCHES = 12
 # Matches kept at most (the weighted sums cost cells x matches x 81).
@@ -34,8 +35,6 @@ MAX_MATCHES = 3000
 # A match moving farther than this share of the image diagonal from its neighbours' median
 # motion is a mismatch.
 COHERENCE_FRACTION = 0.02
-# The canvas is at most this many times the reference's size (as pis3r's default).
-MAX_CANVAS_SCALE = 3.0
 
 
 @dataclass(frozen=True)
@@ -139,13 +138,13 @@ def moving_dlt(
 
 def canvas_box(reference_shape: tuple[int, int], target_shape: tuple[int, int], H_ref_to_tgt: np.ndarray):
     """``(x0, y0, width, height)`` in reference px of the box holding the reference and the
-    target's corners mapped into the reference frame, capped at ``MAX_CANVAS_SCALE``."""
+    target's corners mapped into the reference frame, capped at ``DEFAULT_MAX_CANVAS_SCALE``."""
     h, w = reference_shape
     th, tw = target_shape
     corners = np.array([[0, 0], [tw - 1, 0], [tw - 1, th - 1], [0, th - 1]], np.float64)
     mapped = cv2.perspectiveTransform(corners[None], np.linalg.inv(H_ref_to_tgt))[0]
     # A corner behind the reference camera maps to the wrong side: the cap below handles it.
-    margin_x, margin_y = (MAX_CANVAS_SCALE - 1) * w / 2, (MAX_CANVAS_SCALE - 1) * h / 2
+    margin_x, margin_y = (DEFAULT_MAX_CANVAS_SCALE - 1) * w / 2, (DEFAULT_MAX_CANVAS_SCALE - 1) * h / 2
     x0 = int(np.floor(np.clip(min(0, mapped[:, 0].min()), -margin_x, 0)))
     y0 = int(np.floor(np.clip(min(0, mapped[:, 1].min()), -margin_y, 0)))
     x1 = int(np.ceil(np.clip(max(w - 1, mapped[:, 0].max()), w - 1, w - 1 + margin_x)))

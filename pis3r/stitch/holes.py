@@ -14,6 +14,9 @@ import numpy as np
 
 from pis3r.io import to_uint8
 
+# Radius (px) of the closing disk: gaps narrower than about twice this are holes, wider ones background.
+DEFAULT_HOLE_RADIUS = 4
+
 
 @dataclass
 class FilledCanvas:
@@ -41,7 +44,7 @@ def hole_mask(occupied: np.ndarray, radius: int) -> np.ndarray:
 def fill_holes(
     image: np.ndarray,
     occupied: np.ndarray,
-    radius: int = 4,
+    radius: int = DEFAULT_HOLE_RADIUS,
     inpaint_radius: int = 5,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> FilledCanvas:

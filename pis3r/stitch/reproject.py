@@ -24,6 +24,8 @@ MIN_RELATIVE_DEPTH = 1e-3
 FOOTPRINT_DEPTH_BIAS = 1e-3
 # Points sampled to estimate each view's exposure gain.
 GAIN_SAMPLES = 200_000
+# The canvas is at most this many times the reference's width and height.
+DEFAULT_MAX_CANVAS_SCALE = 3.0
 
 
 @dataclass
@@ -150,7 +152,7 @@ def _match_gains(rgb, owner, ref_x, ref_y, ref_image: np.ndarray) -> torch.Tenso
 def reproject_to_canvas(
     scene: Scene,
     ref_index: int = 0,
-    max_canvas_scale: float = 3.0,
+    max_canvas_scale: float = DEFAULT_MAX_CANVAS_SCALE,
     device: str | torch.device = "cpu",
     min_confidence: float = 0.0,
     match_exposure: bool = True,
