@@ -20,7 +20,9 @@ from pathlib import Path
 import click
 
 from pis3r import io
+from pis3r.cli_options import click_options
 from pis3r.errors import InputError, Pis3rError
+from pis3r.options import OPTION_NAMES, StitchOptions
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 # Written by StitchResult.save; report.json last, so its presence means a finished case.
@@ -29,7 +31,7 @@ SUMMARY_FIELDS = ("case", "status", "reason", "seconds", "parallax")
 
 
 @dataclass(frozen=True)
-class Case:
+class BatchCase:
     """One stitch job: ``name`` (its output sub-folder) and its image paths, reference first."""
 
     name: str
@@ -42,7 +44,7 @@ def _folder_images(folder: Path) -> tuple[Path, ...]:
     return tuple(sorted(images, key=lambda p: p.stem.lower() != "ref"))
 
 
-def _csv_cases(table: Path) -> list[Case]:
+def _csv_cases(table: Path) -> list[BatchCase]:
     """One case per non-empty CSV row of image paths (relative to the CSV's folder)."""
     cases = []
     with table.open(newline="") as handle:
@@ -51,18 +53,18 @@ def _csv_cases(table: Path) -> list[Case]:
             if paths:
                 # The row number keeps names unique; the first image's stem makes them readable.
                 stem = re.sub(r"[^A-Za-z0-9_.-]", "_", paths[0].stem)
-                cases.append(Case(f"{line:04d}_{stem}", paths))
+                cases.append(BatchCase(f"{line:04d}_{stem}", paths))
     return cases
 
 
-def discover_cases(source: Path) -> list[Case]:
+def discover_cases(source: Path) -> list[BatchCase]:
     """Cases of a directory of case folders, or of a CSV file (see the module docstring)."""
     source = Path(source)
     if source.is_file():
         return _csv_cases(source)
     if not source.is_dir():
         raise InputError(f"{source}: no such directory or CSV file")
-    cases = [Case(folder.name, _folder_images(folder)) for folder in sorted(source.iterdir()) if folder.is_dir()]
+    cases = [BatchCase(folder.name, _folder_images(folder)) for folder in sorted(source.iterdir()) if folder.is_dir()]
     if not cases:
         raise InputError(f"{source}: no case sub-folders found")
     return cases
@@ -77,13 +79,13 @@ def one_line(exc: BaseException) -> str:
     return text[0] if text else exc.__class__.__name__
 
 
-def run_case(case: Case, outdir: Path, options: dict) -> dict:
+def run_case(case: BatchCase, outdir: Path, options: StitchOptions) -> dict:
     """Stitch one case into ``outdir/<case>/``; never raises, returns its summary row."""
     from pis3r.api import stitch
 
     start = time.perf_counter()
     try:
-        result = stitch(list(case.images), **options)
+        result = stitch(list(case.images), options)
         result.save(Path(outdir) / case.name)
         status, reason, parallax = "ok", "", result.report["parallax"]["class"]
     except Pis3rError as exc:
@@ -123,18 +125,22 @@ def run_batch(
     outdir: Path,
     workers: int = 1,
     scheduler: str | None = None,
-    options: dict | None = None,
+    options: StitchOptions | None = None,
     progress: bool = True,
 ) -> list[dict]:
     """Stitch every case of ``source`` into ``outdir``; returns the summary rows in case order.
 
-    ``options`` are keyword arguments of :func:`pis3r.stitch`. ``summary.csv`` is
+    ``options``: the :class:`pis3r.StitchOptions` of every case (``ref`` must be an index:
+    each case writes one result). ``summary.csv`` is
     rewritten after every finished case, so it is current even if the batch is stopped.
     """
     from distributed import as_completed
     from tqdm import tqdm
 
     outdir = Path(outdir)
+    options = options or StitchOptions()
+    if options.ref == "all":
+        raise InputError("batch writes one result per case: --ref must be an image index, not 'all'")
     cases = discover_cases(source)
     rows = {case.name: {"case": case.name, "status": "skipped", "reason": "outputs exist", "seconds": 0.0,
                         "parallax": ""} for case in cases if is_finished(outdir / case.name)}
@@ -147,7 +153,7 @@ def run_batch(
         if todo:
             client = _connect(workers, scheduler)
             try:
-                futures = {client.submit(run_case, case, outdir, options or {}, pure=False): case for case in todo}
+                futures = {client.submit(run_case, case, outdir, options, pure=False): case for case in todo}
                 for future in as_completed(futures):
                     case = futures[future]
                     try:
@@ -175,15 +181,15 @@ def run_batch(
 @click.option("--scheduler", default=None,
               help="Address of an existing dask scheduler (e.g. tcp://10.0.0.5:8786) instead of a local cluster; "
                    "its workers need pis3r and access to the image paths.")
-@click.option("--backend", type=click.Choice(["auto", "classical", "vggt"]), default="auto", show_default=True)
-@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True)
+@click_options(*(name for name in OPTION_NAMES if name != "ref"))
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def batch_command(pairs, outdir, workers, scheduler, backend, blend, quiet):
+def batch_command(pairs, outdir, workers, scheduler, quiet, **options):
     """Stitch every case of PAIRS (a folder of case folders, or a CSV of image rows) into OUTDIR.
 
-    Resumable: cases whose outputs exist are skipped. Exits non-zero if any case failed
-    (the reasons are in OUTDIR/summary.csv)."""
-    rows = run_batch(pairs, outdir, workers, scheduler, {"backend": backend, "blend": blend}, progress=not quiet)
+    Every case is stitched with the same options (those of `pis3r stitch`; the first image
+    of a case is its reference). Resumable: cases whose outputs exist are skipped. Exits
+    non-zero if any case failed (the reasons are in OUTDIR/summary.csv)."""
+    rows = run_batch(pairs, outdir, workers, scheduler, StitchOptions(**options), progress=not quiet)
     failed = sum(row["status"] == "failed" for row in rows)
     if failed:
         raise Pis3rError(f"{failed} of {len(rows)} cases failed; reasons in {outdir / 'summary.csv'}")

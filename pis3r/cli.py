@@ -8,17 +8,26 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import click
 
-from pis3r.errors import InputError, Pis3rError
+from pis3r.cli_options import click_options
+from pis3r.errors import Pis3rError
+from pis3r.options import OPTION_NAMES, StitchOptions
 
 
 class Pis3rGroup(click.Group):
     """A click group that turns every :class:`Pis3rError` into one line + exit code."""
 
     def invoke(self, ctx):
+        with warnings.catch_warnings():
+            # A library warning is one plain line, never Python's two-line form with a path.
+            warnings.showwarning = _one_line_warning
+            return self._invoke_reporting_errors(ctx)
+
+    def _invoke_reporting_errors(self, ctx):
         try:
             return super().invoke(ctx)
         except Pis3rError as exc:
@@ -44,6 +53,11 @@ class Pis3rGroup(click.Group):
             sys.exit(70)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    text = " ".join(str(message).split())
+    click.echo(f"pis3r: warning: {category.__name__}: {text}", err=True)
+
+
 @click.group(cls=Pis3rGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="pis3r")
 def main() -> None:
@@ -54,75 +68,22 @@ def main() -> None:
     """
 
 
-def _parse_ref(value: str) -> int | str:
-    if value == "all":
-        return "all"
-    try:
-        return int(value)
-    except ValueError:
-        raise InputError(f"--ref must be an image index or 'all', got {value!r}") from None
-
-
 @main.command("stitch")
 @click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("-o", "--output", "outdir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Directory for stitched.png, mask.png, camera.json, report.json (and points.ply).")
-@click.option("--ref", default="0", show_default=True,
-              help="Index of the reference image, or 'all' for one result per image in OUTDIR/ref_<i>/.")
-@click.option("--backend", type=click.Choice(["auto", "classical", "vggt"]), default="auto", show_default=True,
-              help="3D engine: VGGT when its weights are found (auto), else the weight-free classical one.")
-@click.option("--focal", type=float, default=None,
-              help="Focal length of the inputs in pixels (default: EXIF, else self-calibrated).")
-@click.option("--max-canvas-scale", type=click.FloatRange(1.0, 10.0), default=3.0, show_default=True,
-              help="The canvas is at most this many times the reference's width and height.")
-@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True)
-@click.option("--weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="VGGT weight file (model.safetensors or model.pt); or set PIS3R_VGGT_WEIGHTS.")
-@click.option("--conf-threshold", type=click.FloatRange(0.0, 1.0), default=0.0, show_default=True,
-              help="Drop points whose confidence (0..1) is below this; 0 keeps all, as the paper.")
-@click.option("--depth-fill", type=click.Choice(["planar", "harmonic"]), default="planar", show_default=True,
-              help="Classical backend: extend depth where one view sees the scene by continuing local planes "
-                   "(planar) or by smooth inverse depth (harmonic).")
-@click.option("--blend", type=click.Choice(["feather", "multiband", "none"]), default="feather", show_default=True,
-              help="Blend the other views toward the reference's colours across its border.")
-@click.option("--blend-into-reference", is_flag=True,
-              help="Let the blend enter the reference (by default its pixels stay verbatim).")
-@click.option("--refine", type=click.Choice(["auto", "rddm", "none"]), default="none", show_default=True,
-              help="Diffusion refinement of the canvas: auto = rddm when its weights are installed.")
-@click.option("--refine-region", type=click.Choice(["holes", "all"]), default=None,
-              help="Pixels the refiner may change: inpainted/low-quality ones (holes) or all reprojected ones. "
-                   "Default: the one the ablation chose (see pis3r/refine/weights/MODEL_CARD.md).")
-@click.option("--refine-steps", type=click.IntRange(1, 100), default=5, show_default=True)
-@click.option("--refine-weights", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="Another refiner weight file (safetensors) than the shipped one.")
+@click_options(*OPTION_NAMES)
 @click.option("--ply", is_flag=True, help="Also write points.ply (all views' points, xyz + rgb).")
 @click.option("--colmap", "colmap_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write a COLMAP text model (cameras.txt, images.txt, points3D.txt) into this directory.")
 @click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
-def stitch_command(images, outdir, ref, backend, focal, max_canvas_scale, device, weights, conf_threshold,
-                   depth_fill, blend, blend_into_reference, refine, refine_region, refine_steps, refine_weights,
-                   ply, colmap_dir, quiet):
-    """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise)."""
-    from pis3r.api import DEFAULT_REFINE_REGION, stitch
+def stitch_command(images, outdir, ply, colmap_dir, quiet, **options):
+    """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise).
 
-    result = stitch(
-        [str(p) for p in images],
-        ref=_parse_ref(ref),
-        backend=backend,
-        focal=focal,
-        max_canvas_scale=max_canvas_scale,
-        device=device,
-        weights=weights,
-        conf_threshold=conf_threshold,
-        depth_fill=depth_fill,
-        blend=blend,
-        blend_into_reference=blend_into_reference,
-        refine=refine,
-        refine_region=refine_region or DEFAULT_REFINE_REGION,
-        refine_steps=refine_steps,
-        refine_weights=refine_weights,
-        quiet=quiet,
-    )
+    Every option's default and allowed values are those of pis3r.StitchOptions."""
+    from pis3r.api import stitch
+
+    result = stitch([str(p) for p in images], StitchOptions(**options), quiet=quiet)
     results = result if isinstance(result, list) else [result]
     for item in results:
         subdir = f"ref_{item.ref_index}" if len(results) > 1 else ""

@@ -13,16 +13,13 @@ from __future__ import annotations
 import io as _io
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pis3r import io
 from pis3r.camera import Camera
-
-if TYPE_CHECKING:
-    from pis3r.api import StitchResult
+from pis3r.scene import Scene
 
 CANVAS_IMAGE_NAME = "stitched.png"
 # Seed of the point subsample: the same stitch always exports the same model.
@@ -46,10 +43,10 @@ def pinhole_params(camera: Camera) -> np.ndarray:
     return np.array([K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5])
 
 
-def _image_names(result: "StitchResult") -> list[str]:
+def _image_names(scene: Scene) -> list[str]:
     """One unique COLMAP-safe name per input view (the text format splits on spaces)."""
     names, seen = [], set()
-    for index, view in enumerate(result.scene.views):
+    for index, view in enumerate(scene.views):
         name = (Path(view.name).name or f"image_{index}").replace(" ", "_")
         if name in seen or name == CANVAS_IMAGE_NAME:
             name = f"{index}_{name}"
@@ -99,14 +96,15 @@ def subsample_points(points: np.ndarray, colors: np.ndarray, max_points: int) ->
     return points[keep], colors[keep]
 
 
-def colmap_text_files(result: "StitchResult", max_points: int = 100_000) -> dict[str, bytes]:
-    """``{file name: bytes}`` of the COLMAP text model of ``result`` (see the module docstring).
+def colmap_text_files(scene: Scene, canvas_camera: Camera, max_points: int = 100_000) -> dict[str, bytes]:
+    """``{file name: bytes}`` of the COLMAP text model of a stitch: the ``scene``'s views and
+    points and the ``canvas_camera`` (see the module docstring).
 
     Camera/image ids ``1..N`` are the inputs in input order, ``N + 1`` the canvas.
     """
-    cameras = [view.camera for view in result.scene.views] + [result.camera]
-    names = _image_names(result) + [CANVAS_IMAGE_NAME]
-    points, colors = subsample_points(*result.point_cloud(), max_points)
+    cameras = [view.camera for view in scene.views] + [canvas_camera]
+    names = _image_names(scene) + [CANVAS_IMAGE_NAME]
+    points, colors = subsample_points(*scene.point_cloud(), max_points)
     return {
         "cameras.txt": _cameras_text(cameras).encode(),
         "images.txt": _images_text(cameras, names).encode(),
@@ -114,11 +112,13 @@ def colmap_text_files(result: "StitchResult", max_points: int = 100_000) -> dict
     }
 
 
-def write_colmap_text(result: "StitchResult", directory: str | os.PathLike, max_points: int = 100_000) -> list[Path]:
+def write_colmap_text(
+    scene: Scene, canvas_camera: Camera, directory: str | os.PathLike, max_points: int = 100_000
+) -> list[Path]:
     """Write ``cameras.txt``, ``images.txt``, ``points3D.txt`` into ``directory``, each atomically."""
     directory = Path(directory)
     written = []
-    for name, data in colmap_text_files(result, max_points).items():
+    for name, data in colmap_text_files(scene, canvas_camera, max_points).items():
         io.write_bytes(directory / name, data)
         written.append(directory / name)
     return written

@@ -17,6 +17,10 @@ class InputError(Pis3rError):
     exit_code = 2
 
 
+class InvalidOptionError(InputError):
+    """An option of a stitch has a value outside its allowed choices or range."""
+
+
 class NotEnoughOverlapError(InputError):
     """The images share too little of the scene to be registered."""
 

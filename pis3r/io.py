@@ -6,6 +6,7 @@ import io as _io
 import json
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Union
@@ -51,6 +52,17 @@ class Photo:
     @property
     def width(self) -> int:
         return self.pixels.shape[1]
+
+
+def downscaled(photo: Photo, factor: float) -> Photo:
+    """``photo`` resized by ``factor`` < 1 (area averaging); its EXIF focal scales with it."""
+    size = (int(photo.width * factor), int(photo.height * factor))
+    return Photo(
+        cv2.resize(photo.pixels, size, interpolation=cv2.INTER_AREA),
+        photo.name,
+        photo.focal_px * factor if photo.focal_px else None,
+        photo.focal_evidence,
+    )
 
 
 def to_float_rgb(array: np.ndarray, name: str = "image") -> np.ndarray:
@@ -127,7 +139,7 @@ def read_image(source: ImageLike, name: str | None = None) -> Photo:
         raise InputError(f"{path}: file is empty")
     exif = None
     try:
-        with Image.open(_io.BytesIO(data)) as probe:
+        with _open_image(data) as probe:
             if probe.width * probe.height > MAX_DECODE_PIXELS:
                 raise InputError(
                     f"{path}: {probe.width}x{probe.height} is too large to decode "
@@ -146,7 +158,7 @@ def read_image(source: ImageLike, name: str | None = None) -> Photo:
         raise InputError(f"{path}: not a readable image (too large or corrupt)") from None
     if decoded is None:
         try:
-            with Image.open(_io.BytesIO(data)) as img:
+            with _open_image(data) as img:
                 img.load()
                 pixels = _pil_to_float(ImageOps.exif_transpose(img), label)
         except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
@@ -157,6 +169,14 @@ def read_image(source: ImageLike, name: str | None = None) -> Photo:
         pixels = _apply_orientation(to_float_rgb(decoded, label), exif)
     focal, evidence = _exif_focal(exif, pixels.shape[1], pixels.shape[0]) if exif else (None, "")
     return Photo(pixels, label, focal, evidence)
+
+
+def _open_image(data: bytes) -> Image.Image:
+    """Pillow's lazy open, without its decompression-bomb warning: pis3r has its own pixel
+    limits (:data:`MAX_DECODE_PIXELS` here, downscaling of huge inputs in the stitch)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        return Image.open(_io.BytesIO(data))
 
 
 def _pil_to_float(img: Image.Image, name: str) -> np.ndarray:
@@ -257,6 +277,3 @@ def encode_ply(points: np.ndarray, colors: np.ndarray) -> bytes:
     )
     return header.encode("ascii") + table.tobytes()
 
-
-def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
-    write_bytes(path, encode_ply(points, colors))

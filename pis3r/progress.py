@@ -1,9 +1,15 @@
-"""Per-stage timing and the one progress line per stage printed on stderr."""
+"""Per-stage timing, the one progress line per stage printed on stderr, and warnings.
+
+A stitch never lets a raw Python warning reach the user: :class:`WarningLog` records
+library warnings (numpy, torch, Pillow, ...) and pis3r's own notes as one plain line each,
+printed as ``[pis3r] warning: ...`` (unless quiet) and kept for ``report.json``.
+"""
 
 from __future__ import annotations
 
 import sys
 import time
+import warnings
 from contextlib import contextmanager
 
 
@@ -14,6 +20,10 @@ class StageTimer:
         self.quiet = quiet
         self.prefix = prefix
         self.seconds: dict[str, float] = {}
+
+    def child(self, prefix: str) -> "StageTimer":
+        """A timer for sub-stages, printing with ``prefix`` and this timer's quietness."""
+        return StageTimer(quiet=self.quiet, prefix=prefix)
 
     def say(self, message: str) -> None:
         if not self.quiet:
@@ -31,3 +41,28 @@ class StageTimer:
             self.seconds[name] = self.seconds.get(name, 0.0) + elapsed
             if not self.quiet:
                 print(f" {elapsed:.2f} s", file=sys.stderr, flush=True)
+
+
+class WarningLog:
+    """One-line warnings of a stitch, in the order they happened, each said once."""
+
+    def __init__(self, timer: StageTimer) -> None:
+        self.timer = timer
+        self.lines: list[str] = []
+
+    def add(self, line: str) -> None:
+        line = " ".join(str(line).split())
+        if line and line not in self.lines:
+            self.lines.append(line)
+            self.timer.say(f"warning: {line}")
+
+    @contextmanager
+    def capture(self):
+        """Record every Python warning raised inside the block as one line (category: message)."""
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            try:
+                yield self
+            finally:
+                for record in caught:
+                    self.add(f"{record.category.__name__}: {record.message}")

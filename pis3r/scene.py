@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pis3r.camera import Camera
 
+if TYPE_CHECKING:
+    from pis3r.parallax import ParallaxEstimate
 
-@dataclass
+
+@dataclass(frozen=True)
 class View:
     """One input photo after reconstruction.
 
@@ -34,17 +38,77 @@ class View:
         """``(H, W, 3)`` world coordinates of every pixel (garbage where not ``valid``)."""
         return self.camera.unproject(np.where(self.valid, self.depth, 0.0))
 
+    def rescaled(self, factor: float) -> "View":
+        """The same view in a world scaled by ``factor`` (translation and depth times ``factor``)."""
+        cam = self.camera
+        return replace(self, camera=Camera(cam.K, cam.R, cam.t * factor, cam.width, cam.height),
+                       depth=self.depth * factor)
 
-@dataclass
+
+@dataclass(frozen=True)
+class DroppedView:
+    """An input a backend could not register: its ``index`` (see :class:`Scene`), ``name`` and ``reason``."""
+
+    index: int
+    name: str
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "name": self.name, "reason": self.reason}
+
+
+@dataclass(frozen=True)
 class Scene:
-    """All views in one world frame (the reference camera's unless ``info`` says otherwise).
+    """All registered views in one world frame (the first view's camera).
 
-    ``info`` carries what the backend wants the report to say: ``backend``,
-    ``model`` (``"3d"`` or ``"homography"``), ``focal_source``, match counts, warnings.
+    ``indices[k]``: which photo ``views[k]`` came from — a position in the list the backend
+    received, or, after :meth:`in_input_order`, the caller's input index; ``dropped`` uses
+    the same numbering. ``model``: ``"3d"`` or ``"homography"`` (with ``model_reason``);
+    ``focal`` (pixels, of the first photo) and ``focal_source``: where it came from;
+    ``parallax``: the pair's parallax estimate when the backend measured it; ``warnings``:
+    one line each, for the user. ``info``: report-only extras (match counts, details).
     """
 
-    views: list[View]
+    views: tuple[View, ...]
+    indices: tuple[int, ...] = ()
+    dropped: tuple[DroppedView, ...] = ()
+    model: str = "3d"
+    model_reason: str = ""
+    focal: float | None = None
+    focal_source: str = ""
+    parallax: "ParallaxEstimate | None" = None
+    warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "views", tuple(self.views))
+        object.__setattr__(self, "indices", tuple(self.indices) or tuple(range(len(self.views))))
+        if len(self.indices) != len(self.views):
+            raise ValueError(f"Scene: {len(self.views)} views but {len(self.indices)} indices")
 
     def __len__(self) -> int:
         return len(self.views)
+
+    def in_input_order(self, order: list[int]) -> "Scene":
+        """A new scene numbered by input index: the backend received photo ``order[k]`` as its ``k``-th;
+        views are sorted by input index (the world frame stays the same camera)."""
+        pairs = sorted(zip((order[k] for k in self.indices), self.views), key=lambda pair: pair[0])
+        return replace(
+            self,
+            views=tuple(view for _, view in pairs),
+            indices=tuple(index for index, _ in pairs),
+            dropped=tuple(replace(d, index=order[d.index]) for d in self.dropped),
+        )
+
+    def position(self, index: int) -> int:
+        """Position in ``views`` of the view with index ``index``."""
+        return self.indices.index(index)
+
+    def point_cloud(self) -> tuple[np.ndarray, np.ndarray]:
+        """All views' valid points in the world frame ``(N, 3)`` and their colours ``(N, 3)``."""
+        points, colors = [], []
+        for view in self.views:
+            keep = view.valid
+            points.append(view.world_points()[keep])
+            colors.append(view.image[keep])
+        return np.concatenate(points), np.concatenate(colors)

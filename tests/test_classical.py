@@ -4,7 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from pis3r.errors import InputError, NotEnoughOverlapError
 from pis3r.io import Photo
-from pis3r.reconstruct.base import ReconstructOptions
+from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.classical import ClassicalReconstructor
 from tests.analytic import planes_scene, render, two_view_cameras
 
@@ -30,10 +30,10 @@ def test_pose_and_self_calibrated_focal(analytic_pair, reconstruction):
     rotation_error = np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ tgt.R.T).as_rotvec()))
     direction = tgt.t / np.linalg.norm(tgt.t)
     translation_error = np.degrees(np.arccos(np.clip(camera.t @ direction / np.linalg.norm(camera.t), -1, 1)))
-    assert reconstruction.info["model"] == "3d"
+    assert reconstruction.model == "3d"
     assert rotation_error < 1.0
     assert translation_error < 3.0
-    assert reconstruction.info["focal_source"].startswith("self-calibrated")
+    assert reconstruction.focal_source.startswith("self-calibrated")
     assert reconstruction.views[0].camera.K[0, 0] == pytest.approx(ref.K[0, 0], rel=0.05)
     np.testing.assert_array_equal(reconstruction.views[0].camera.R, np.eye(3))
 
@@ -55,7 +55,7 @@ def test_given_focal_is_used(analytic_pair):
     scene = ClassicalReconstructor(ReconstructOptions(focal=400.0)).reconstruct(
         [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
     )
-    assert scene.info["focal_source"] == "flag"
+    assert scene.focal_source == "flag"
     assert scene.views[0].camera.K[0, 0] == 400.0
 
 
@@ -72,7 +72,7 @@ def test_pure_rotation_uses_the_homography_model():
     a, _ = render(wall, ref)
     b, _ = render(wall, turned)
     scene = ClassicalReconstructor(ReconstructOptions()).reconstruct([Photo(a, "a"), Photo(b, "b")])
-    assert scene.info["model"] == "homography"
+    assert scene.model == "homography"
     np.testing.assert_allclose(scene.views[1].camera.t, 0)
     angle = np.degrees(np.linalg.norm(Rotation.from_matrix(scene.views[1].camera.R @ turned.R.T).as_rotvec()))
     assert angle < 1.0

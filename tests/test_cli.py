@@ -105,6 +105,7 @@ def test_ref_index_selects_the_reference(overlapping_pair, tmp_path):
     check_outputs(tmp_path / "out", np.asarray(Image.open(b).convert("RGB")))
 
 
+@pytest.mark.slow
 @needs_real_data
 @pytest.mark.parametrize("pair", real_pairs(), ids=lambda p: p.name)
 def test_every_real_pair(pair, tmp_path):

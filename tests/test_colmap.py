@@ -20,7 +20,7 @@ def test_quaternion_is_colmap_order_with_positive_w():
 
 
 def test_pycolmap_reads_cameras_poses_and_points(small_result, tmp_path):
-    write_colmap_text(small_result, tmp_path, max_points=500)
+    write_colmap_text(small_result.scene, small_result.camera, tmp_path, max_points=500)
     model = pycolmap.Reconstruction(str(tmp_path))
     cameras = [view.camera for view in small_result.scene.views] + [small_result.camera]
     assert model.num_cameras() == model.num_images() == len(cameras)

@@ -239,8 +239,16 @@ def test_missing_or_corrupt_weights_raise_weights_error(tmp_path):
     save_file({"w": torch.zeros(2)}, str(foreign))
     with pytest.raises(WeightsError, match="foreign.safetensors"):
         load_refiner(foreign)
-    shipped = default_weights_path()
-    assert shipped is None or shipped.is_file()
+
+
+def test_default_weights_path_finds_the_shipped_file_or_none(tmp_path, monkeypatch):
+    import pis3r.refine.model as refine_model
+
+    shipped = tmp_path / "rddm.safetensors"
+    monkeypatch.setattr(refine_model, "SHIPPED_WEIGHTS", shipped)
+    assert default_weights_path() is None
+    shipped.write_bytes(b"weights")
+    assert default_weights_path() == shipped
 
 
 def test_shipped_weights_are_fp16_small_and_usable():

@@ -46,15 +46,13 @@ def test_zbuffer_keeps_the_nearest_point():
     K = intrinsics(100, 10, 10)
     ref = Camera.identity(K, 10, 10)
     empty = View(np.zeros((10, 10, 3), np.float32), ref, np.zeros((10, 10), np.float32), np.zeros((10, 10), np.float32))
-    # A second camera at the same place sees two layers: far red and near green on the same pixels.
-    far = View(np.tile(np.array([1, 0, 0], np.float32), (10, 10, 1)), Camera(K, np.eye(3), [0, 0, 0], 10, 10),
-               np.full((10, 10), 5.0, np.float32), np.ones((10, 10), np.float32))
-    near = View(np.tile(np.array([0, 1, 0], np.float32), (10, 10, 1)), Camera(K, np.eye(3), [0, 0, 0], 10, 10),
-                np.full((10, 10), 2.0, np.float32), np.ones((10, 10), np.float32))
-    # Shift both by a translation so they land beside the (empty) reference.
+    # Two more cameras see two layers, far red and near green, on the same pixels; each is
+    # shifted by a translation so that both land beside the (empty) reference.
     shift = np.array([-0.5, 0, 0])
-    far.camera = Camera(K, np.eye(3), shift * 1.0, 10, 10)
-    near.camera = Camera(K, np.eye(3), shift * 0.4, 10, 10)
+    far = View(np.tile(np.array([1, 0, 0], np.float32), (10, 10, 1)), Camera(K, np.eye(3), shift * 1.0, 10, 10),
+               np.full((10, 10), 5.0, np.float32), np.ones((10, 10), np.float32))
+    near = View(np.tile(np.array([0, 1, 0], np.float32), (10, 10, 1)), Camera(K, np.eye(3), shift * 0.4, 10, 10),
+                np.full((10, 10), 2.0, np.float32), np.ones((10, 10), np.float32))
     canvas = reproject_to_canvas(Scene([empty, far, near]), match_exposure=False)
     ox, oy = canvas.ref_offset
     outside = canvas.occupied.copy()

@@ -17,7 +17,8 @@ from safetensors.torch import save_file
 
 from pis3r.errors import ReconstructionError, WeightsError
 from pis3r.io import Photo
-from pis3r.reconstruct.base import ReconstructOptions, create_backend
+from pis3r.reconstruct.base import create_backend
+from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.vggt import VGGT, fetch_weights, find_weights, load_vggt
 from pis3r.reconstruct.vggt.backend import confidence_to_unit, view_from_prediction
 from pis3r.reconstruct.vggt.model import SMALL_CONFIG
@@ -174,9 +175,9 @@ def test_backend_end_to_end_scene_contract(checkpoint):
     inputs = photos()
     scene = create_backend("vggt", ReconstructOptions(device="cpu", weights=checkpoint)).reconstruct(inputs)
     assert len(scene) == 2
-    assert scene.info["backend"] == "vggt" and scene.info["model"] == "3d"
-    assert scene.info["focal_source"] == "vggt" and scene.info["weights"] == str(checkpoint)
-    assert isinstance(scene.info["warnings"], list)
+    assert scene.info["backend"] == "vggt" and scene.model == "3d"
+    assert scene.focal_source == "vggt" and scene.info["weights"] == str(checkpoint)
+    assert isinstance(scene.warnings, tuple)
     ref, other = scene.views
     assert np.array_equal(ref.camera.R, np.eye(3)) and np.array_equal(ref.camera.t, np.zeros(3))
     for view, photo in zip(scene.views, inputs):

@@ -11,10 +11,13 @@ import pytest
 from PIL import Image
 
 CHROMIUM, CHROMEDRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
-pytestmark = pytest.mark.skipif(
-    not (CHROMIUM.exists() and CHROMEDRIVER.exists()),
-    reason="Debian chromium/chromium-driver not installed (`make browser` installs them)",
-)
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        not (CHROMIUM.exists() and CHROMEDRIVER.exists()),
+        reason="Debian chromium/chromium-driver not installed (`make browser` installs them)",
+    ),
+]
 
 
 @pytest.fixture()
@@ -65,7 +68,16 @@ def test_upload_stitch_show_download(server, browser, small_pair, tmp_path):
     for index, array in enumerate(small_pair):
         paths.append(tmp_path / f"photo_{index}.png")
         Image.fromarray(array).save(paths[-1])
+    from pis3r import StitchOptions
+
     browser.get(server + "/")
+    # The form's choices and defaults are the server's StitchOptions, loaded by the page.
+    for name in ("backend", "blend"):
+        WebDriverWait(browser, 30).until(
+            lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{name} option")) == len(StitchOptions.choices(name)))
+        offered = [o.get_attribute("value") for o in browser.find_elements(By.CSS_SELECTOR, f"#{name} option")]
+        assert tuple(offered) == StitchOptions.choices(name)
+        assert browser.find_element(By.ID, name).get_attribute("value") == StitchOptions.default(name)
     browser.find_element(By.ID, "files").send_keys("\n".join(str(p) for p in paths))
     browser.find_element(By.ID, "backend").send_keys("classical")
     browser.find_element(By.ID, "go").click()

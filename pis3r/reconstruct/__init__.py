@@ -1,21 +1,6 @@
 """Reconstruction backends: photos -> Scene."""
 
-from pis3r.reconstruct.base import (
-    Reconstructor,
-    ReconstructOptions,
-    backend_names,
-    create_backend,
-    register,
-    resolve_backend_name,
-    resolve_device,
-)
+from pis3r.reconstruct.base import BACKEND_CHOICES, BACKENDS, Reconstructor, create_backend, resolve_backend_name
+from pis3r.reconstruct.options import ReconstructOptions
 
-__all__ = [
-    "Reconstructor",
-    "ReconstructOptions",
-    "backend_names",
-    "create_backend",
-    "register",
-    "resolve_backend_name",
-    "resolve_device",
-]
+__all__ = ["BACKENDS", "BACKEND_CHOICES", "Reconstructor", "ReconstructOptions", "create_backend", "resolve_backend_name"]

@@ -27,10 +27,10 @@ from pis3r.features import Matches, detect, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.base import ReconstructOptions, register
+from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
 from pis3r.reconstruct.propagate import propagate_inverse_depth
-from pis3r.scene import Scene, View
+from pis3r.scene import DroppedView, Scene, View
 
 WORK_MAX_SIDE = 640
 # Relative jump of inverse depth between neighbours above which a pixel sits on a
@@ -50,8 +50,6 @@ def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale
 
 
-
-@register("classical")
 class ClassicalReconstructor:
     """Weight-free two-view (and star-shaped multi-view) reconstruction."""
 
@@ -62,40 +60,40 @@ class ClassicalReconstructor:
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
         """Every photo registered to ``photos[0]``; with three or more photos, one that
-        cannot be registered is dropped (``info["dropped"]``) instead of failing the rest."""
+        cannot be registered is dropped (``Scene.dropped``) instead of failing the rest.
+        The model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = [detect(p.pixels) for p in photos]
         ref = photos[0]
-        info: dict = {"backend": self.name, "warnings": [], "dropped": []}
         focal_ref, source = self._known_focal(ref)
-        views, indices, ref_depth = [], [], None
+        views, indices, dropped, warnings, first = [], [], [], [], None
         for j in range(1, len(photos)):
             try:
-                view_ref, view_j, pair_info, focal_ref, source = self._register(
-                    ref, photos[j], features[0], features[j], focal_ref, source, ref_depth, len(photos) > 2
+                view_ref, view_j, pair, focal_ref, source = self._register(
+                    ref, photos[j], features[0], features[j], focal_ref, source,
+                    None if first is None else views[0].depth, len(photos) > 2,
                 )
             except Pis3rError as exc:
                 if len(photos) == 2:
                     raise
-                info["dropped"].append({"index": j, "name": photos[j].name, "reason": str(exc)})
+                dropped.append(DroppedView(j, photos[j].name, str(exc)))
                 continue
-            if ref_depth is None:
-                info.update({**pair_info, "warnings": info["warnings"] + pair_info["warnings"], "dropped": info["dropped"]})
+            if first is None:
+                first = pair
                 views.append(view_ref)
                 indices.append(0)
-                ref_depth = view_ref.depth
-            else:
-                info["warnings"] += pair_info["warnings"]
+            warnings += pair["warnings"]
             views.append(view_j)
             indices.append(j)
-        if len(views) < 2:
-            reasons = "; ".join(f"{d['name']}: {d['reason']}" for d in info["dropped"])
+        if first is None:
+            reasons = "; ".join(f"{d.name}: {d.reason}" for d in dropped)
             raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
-        info["focal"] = float(focal_ref)
-        info["focal_source"] = source
-        info["view_indices"] = indices
-        return Scene(views, info)
+        return Scene(
+            views, indices, tuple(dropped), model=first["model"], model_reason=first["model_reason"],
+            focal=float(focal_ref), focal_source=source, parallax=first["parallax"], warnings=tuple(warnings),
+            info={"backend": self.name, "num_matches": first["num_matches"], "num_inliers": first["num_inliers"]},
+        )
 
     def _register(self, ref, other, features_ref, features_other, focal_ref, source, ref_depth, named):
         """One pair: ``(view_ref, view_other, info, focal_ref, focal_source)``; the other
@@ -115,9 +113,7 @@ class ClassicalReconstructor:
             ratio = _median_ratio(ref_depth, view_ref.depth)
             if ratio is None:
                 raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
-            cam = view_other.camera
-            view_other.camera = Camera(cam.K, cam.R, cam.t * ratio, cam.width, cam.height)
-            view_other.depth = view_other.depth * ratio
+            view_other = view_other.rescaled(ratio)
         return view_ref, view_other, pair["info"], pair["focal_ref"], pair["focal_source"]
 
     # -- focal --------------------------------------------------------------------------
@@ -187,7 +183,6 @@ class ClassicalReconstructor:
             "parallax": parallax,
             "num_matches": len(matches),
             "num_inliers": int(f_inl.sum()),
-            "matches": matches,
             "warnings": warnings,
         }
         return {"views": views, "info": info, "focal_ref": float(views[0].camera.K[0, 0]), "focal_source": source}

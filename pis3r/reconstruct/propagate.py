@@ -27,6 +27,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
+# How depth is continued where one view sees the scene (module docstring).
+DEPTH_FILLS = ("planar", "harmonic")
+DEFAULT_DEPTH_FILL = "planar"
 SOLVE_MAX_SIDE = 256
 PLANE_WINDOW = 7
 PLANE_LEASH = 1.25
@@ -92,7 +95,7 @@ def propagate_inverse_depth(
     idepth: np.ndarray,
     conf: np.ndarray,
     guide: np.ndarray,
-    method: str = "planar",
+    method: str = DEFAULT_DEPTH_FILL,
     smoothness: float = 1.0,
     sigma: float = 0.08,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +122,7 @@ def propagate_inverse_depth(
     far = 0.25 * float(np.quantile(small[seeds], 0.02))
 
     weight = np.where(seeds, small_conf, 0.0).ravel()
-    if method not in ("harmonic", "planar"):
+    if method not in DEPTH_FILLS:
         raise ValueError(f"unknown propagation method {method!r}")
     solved = screened_solve(L, np.stack([small.ravel(), weight], -1), weight, smoothness)
     dense, reach = solved[:, 0], solved[:, 1]

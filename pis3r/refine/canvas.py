@@ -1,6 +1,6 @@
 """Refining a whole stitched canvas: which pixels, tiled sampling, compositing.
 
-Regions (``mask``: 255 projected, 128 inpainted, 0 background):
+Regions (``mask``: :class:`~pis3r.stitch.mask.MaskValue`, 255 rendered, 128 inpainted, 0 background):
 
 - ``"all"``: every pixel of the closed region (``mask > 0``) may change.
 - ``"holes"``: only where the canvas is known to be weak — inpainted pixels, projected
@@ -24,8 +24,12 @@ import torch
 from pis3r.errors import InputError, WeightsError
 from pis3r.refine.model import Refiner, default_weights_path, load_refiner
 from pis3r.refine.rddm import sample
+from pis3r.stitch.mask import MaskValue
 
 REGIONS = ("holes", "all")
+# Chosen by the refinement ablation (pis3r/refine/weights/MODEL_CARD.md).
+DEFAULT_REGION = "holes"
+DEFAULT_STEPS = 5
 HOLE_MARGIN = 2
 FEATHER = 4
 SPECKLE_THRESHOLD = 0.25
@@ -39,17 +43,17 @@ SEED = 0
 
 def validity_map(mask: np.ndarray) -> np.ndarray:
     """``(H, W)`` float32 condition ``c``: 1 projected, 0.5 inpainted, 0 background (spec §4)."""
-    return np.where(mask >= 192, 1.0, np.where(mask >= 64, 0.5, 0.0)).astype(np.float32)
+    return np.where(mask == MaskValue.RENDERED, 1.0, np.where(mask == MaskValue.INPAINTED, 0.5, 0.0)).astype(np.float32)
 
 
 def region_weights(image: np.ndarray, mask: np.ndarray, region: str) -> np.ndarray:
     """``(H, W)`` float32 in [0, 1]: how much of the refined colour each pixel takes."""
-    valid = mask >= 64
+    valid = mask != MaskValue.BACKGROUND
     if region == "all":
         return valid.astype(np.float32)
     if region != "holes":
         raise InputError(f"refine region must be one of {', '.join(REGIONS)}, got {region!r}")
-    projected = mask >= 192
+    projected = mask == MaskValue.RENDERED
     inpainted = valid & ~projected
     median = cv2.medianBlur((np.clip(image, 0, 1) * 255).round().astype(np.uint8), 5).astype(np.float32) / 255
     speckle = projected & (np.abs(image - median).max(axis=2) > SPECKLE_THRESHOLD)

@@ -40,6 +40,7 @@ import numpy as np
 from pis3r.camera import Camera, intrinsics
 from pis3r.scene import Scene, View
 from pis3r.stitch.holes import fill_holes
+from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.reproject import reproject_to_canvas
 
 # Photos that ship inside scikit-image (no download). Never the evaluation set.
@@ -48,8 +49,6 @@ PHOTO_NAMES = (
     "immunohistochemistry", "moon", "page", "text", "colorwheel", "logo", "grass",
     "gravel", "brick", "cell", "clock", "retina", "stereo_motorcycle",
 )  # fmt: skip
-
-MASK_PROJECTED, MASK_INPAINTED, MASK_BACKGROUND = 255, 128, 0
 
 
 @dataclass
@@ -294,14 +293,14 @@ def make_pair(seed: int, size: int = 128) -> TrainingPair:
 
     canvas = reproject_to_canvas(Scene([ref, source]), ref_index=0, max_canvas_scale=size / min(ww, wh) + 1)
     filled = fill_holes(canvas.image, canvas.occupied)
-    mask = np.where(canvas.occupied, MASK_PROJECTED, np.where(filled.hole, MASK_INPAINTED, MASK_BACKGROUND))
+    mask = stitch_mask(canvas.occupied, filled.hole)
 
     # Canvas pixel (x, y) is frame pixel (x - ox + wx, y - oy + wy).
     ox, oy = canvas.ref_offset
     dx, dy = wx - ox, wy - oy
     degraded = np.zeros_like(image)
     raw = np.zeros_like(image)
-    frame_mask = np.full((size, size), MASK_BACKGROUND, np.uint8)
+    frame_mask = np.full((size, size), MaskValue.BACKGROUND, np.uint8)
     ch, cw = mask.shape
     x0, y0, x1, y1 = max(0, dx), max(0, dy), min(size, cw + dx), min(size, ch + dy)
     window = (slice(y0, y1), slice(x0, x1))
@@ -309,5 +308,5 @@ def make_pair(seed: int, size: int = 128) -> TrainingPair:
     degraded[window] = filled.image[canvas_window]
     raw[window] = np.where(canvas.occupied[canvas_window][..., None], canvas.image[canvas_window], 0.0)
     frame_mask[window] = mask[canvas_window]
-    target = np.where((frame_mask == MASK_BACKGROUND)[..., None], degraded, image)
+    target = np.where((frame_mask == MaskValue.BACKGROUND)[..., None], degraded, image)
     return TrainingPair(degraded=degraded, target=target.astype(np.float32), mask=frame_mask, raw=raw, parallax=parallax)

@@ -28,6 +28,7 @@ from pis3r.refine.data import TrainingPair, make_pair
 from pis3r.refine.model import Refiner, load_refiner, new_refiner, save_refiner
 from pis3r.refine.rddm import q_sample, residual_and_noise
 from pis3r.refine.unet import UNetConfig
+from pis3r.stitch.mask import MaskValue
 
 MODEL_PRESETS = {
     # spec §14's production model (5.2 M parameters): for a GPU.
@@ -130,7 +131,7 @@ class PairPool:
         data = torch.stack(picked).to(device)
         images = data[:, :6].float() / 127.5 - 1.0
         mask = data[:, 6:7]
-        c = torch.where(mask >= 192, 1.0, torch.where(mask >= 64, 0.5, 0.0))
+        c = torch.where(mask == MaskValue.RENDERED, 1.0, torch.where(mask == MaskValue.INPAINTED, 0.5, 0.0))
         return images[:, :3], images[:, 3:6], c
 
     def close(self) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 from pis3r.errors import InputError
 
 BLEND_METHODS = ("none", "feather", "multiband")
+DEFAULT_BLEND = "feather"
 # Width of the blend ramp as a fraction of the reference's shorter side.
 BAND_FRACTION = 0.1
 # Gains outside this range are not an exposure difference but a mismatch.

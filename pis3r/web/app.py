@@ -1,6 +1,8 @@
 """The HTTP API and the page: ``create_app()`` returns a FastAPI app (OpenAPI at ``/docs``).
 
-``POST /api/jobs`` (multipart ``files`` + ``ref``, ``backend``, ``blend``) queues a stitch,
+``GET /api/options`` lists the form's options with their choices and defaults (from
+:class:`pis3r.StitchOptions`), ``POST /api/jobs`` (multipart ``files`` + ``ref``,
+``backend``, ``blend``) queues a stitch,
 ``GET /api/jobs/{id}`` reports its progress and result, ``GET /api/jobs/{id}/files/{name}``
 serves its outputs. Errors are JSON ``{"detail": "one line"}`` with 400 (bad input),
 413 (over a limit), 404 (unknown job or file) or 503 (queue full).
@@ -12,12 +14,12 @@ import time
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from importlib import resources
-from typing import Literal
 
 from fastapi import FastAPI, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 
 from pis3r.errors import InputError, Pis3rError
+from pis3r.options import StitchOptions
 from pis3r.web.jobs import Job, JobQueue, ServerBusyError
 from pis3r.web.uploads import UploadTooLargeError, check_image, read_limited, safe_name
 from pis3r.web.work import DOWNLOADS, run_stitch_job
@@ -36,6 +38,17 @@ class WebLimits:
     job_ttl_s: float = 3600.0
 
 
+# The StitchOptions fields the page offers besides the reference.
+FORM_OPTIONS = ("backend", "blend")
+
+
+def _form_option(name: str):
+    """A form field for StitchOptions field ``name``: its default, choices and help."""
+    spec = StitchOptions.field(name)
+    return Form(spec.default, description=spec.metadata["help"],
+                json_schema_extra={"enum": list(spec.metadata["choices"])})
+
+
 def _status_code(exc: Pis3rError) -> int:
     if isinstance(exc, UploadTooLargeError):
         return 413
@@ -52,7 +65,7 @@ def job_status(job: Job, jobs: JobQueue) -> dict:
         "status": job.status,
         "error": job.error,
         "inputs": job.names,
-        "ref": job.options["ref"],
+        "ref": job.options.ref,
         "position": jobs.position(job) if job.status == "queued" else 0,
         "elapsed_s": round(((job.finished or now) - job.started), 1) if job.started else 0.0,
     }
@@ -93,12 +106,17 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
     def page() -> str:
         return resources.files("pis3r.web").joinpath("static/index.html").read_text()
 
+    @app.get("/api/options", summary="The options the form offers, with their choices and defaults")
+    def options() -> dict:
+        return {name: {"default": StitchOptions.default(name), "choices": list(StitchOptions.choices(name)),
+                       "help": StitchOptions.field(name).metadata["help"]} for name in FORM_OPTIONS}
+
     @app.post("/api/jobs", status_code=202, summary="Queue a stitch of 2 or more photos")
     def submit(
         files: list[UploadFile] = File(description="Two or more photos of one scene"),
         ref: int = Form(0, description="Index of the reference photo (its camera is the output camera)"),
-        backend: Literal["auto", "classical", "vggt"] = Form("auto"),
-        blend: Literal["feather", "multiband", "none"] = Form("feather"),
+        backend: str = _form_option("backend"),
+        blend: str = _form_option("blend"),
     ) -> dict:
         if len(files) < 2:
             raise InputError(f"need at least 2 photos to stitch, got {len(files)}")
@@ -106,6 +124,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
             raise UploadTooLargeError(f"at most {limits.max_files} photos per job, got {len(files)}")
         if not 0 <= ref < len(files):
             raise InputError(f"reference must be a photo index 0..{len(files) - 1}, got {ref}")
+        options = StitchOptions(ref=ref, backend=backend, blend=blend)
         names = [safe_name(upload.filename, index) for index, upload in enumerate(files)]
         contents = []
         for name, upload in zip(names, files):
@@ -117,7 +136,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
         for index, (name, data) in enumerate(zip(names, contents)):
             inputs.append(directory / f"{index:02d}_{name}")
             inputs[-1].write_bytes(data)
-        job = Job(job_id, directory, inputs, names, {"ref": ref, "backend": backend, "blend": blend})
+        job = Job(job_id, directory, inputs, names, options)
         jobs.submit(job)
         return job_status(job, jobs)
 

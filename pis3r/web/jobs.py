@@ -16,9 +16,12 @@ import time
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from pis3r.errors import Pis3rError
+
+if TYPE_CHECKING:
+    from pis3r.options import StitchOptions
 
 # How often idle workers wake up to delete expired jobs.
 PURGE_INTERVAL_S = 30.0
@@ -40,7 +43,7 @@ class Job:
     directory: Path
     inputs: list[Path]
     names: list[str]
-    options: dict
+    options: StitchOptions
     status: str = "queued"
     error: str = ""
     result: dict = field(default_factory=dict)

@@ -8,8 +8,9 @@ import zipfile
 import numpy as np
 
 from pis3r import io
-from pis3r.api import MASK_INPAINTED, MASK_PROJECTED, stitch
+from pis3r.api import stitch
 from pis3r.colmap import colmap_text_files
+from pis3r.stitch.mask import MaskValue
 from pis3r.web.jobs import Job
 
 DOWNLOADS = ("stitched.png", "mask.png", "overlay.png", "camera.json", "report.json", "points.ply", "colmap.zip")
@@ -21,8 +22,8 @@ OVERLAY_INPAINTED = (255, 0, 200, 170)
 def mask_overlay(mask: np.ndarray, ref_offset: tuple[int, int], ref_size: tuple[int, int]) -> np.ndarray:
     """``(H, W, 4)`` uint8 RGBA tint of an ``(H, W)`` stitch mask; the reference itself stays clear."""
     overlay = np.zeros((*mask.shape, 4), np.uint8)
-    overlay[mask == MASK_PROJECTED] = OVERLAY_PROJECTED
-    overlay[mask == MASK_INPAINTED] = OVERLAY_INPAINTED
+    overlay[mask == MaskValue.RENDERED] = OVERLAY_PROJECTED
+    overlay[mask == MaskValue.INPAINTED] = OVERLAY_INPAINTED
     (x, y), (w, h) = ref_offset, ref_size
     overlay[y:y + h, x:x + w] = 0
     return overlay
@@ -39,11 +40,11 @@ def zip_bytes(files: dict[str, bytes]) -> bytes:
 def run_stitch_job(job: Job) -> dict:
     """Stitch ``job.inputs`` with ``job.options``; write :data:`DOWNLOADS` into ``job.directory/out``
     and return what the page shows (parallax class, canvas size, warnings)."""
-    result = stitch(job.inputs, quiet=True, **job.options)
+    result = stitch(job.inputs, job.options)
     out = job.directory / "out"
     result.save(out, ply=True)
-    io.write_bytes(out / "colmap.zip", zip_bytes(colmap_text_files(result)))
-    ref = result.scene.views[result.ref_index].camera
+    io.write_bytes(out / "colmap.zip", zip_bytes(colmap_text_files(result.scene, result.camera)))
+    ref = result.scene.views[result.scene.position(result.ref_index)].camera
     overlay = mask_overlay(result.mask, result.ref_offset, (ref.width, ref.height))
     io.write_bytes(out / "overlay.png", io.encode_png(overlay))
     parallax = result.report["parallax"]

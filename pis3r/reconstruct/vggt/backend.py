@@ -22,7 +22,8 @@ import numpy as np
 from pis3r.camera import Camera
 from pis3r.errors import InputError, ReconstructionError, WeightsError
 from pis3r.io import Photo
-from pis3r.reconstruct.base import ReconstructOptions, register, resolve_device
+from pis3r.device import resolve_device
+from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.vggt.preprocess import Placement, preprocess_images
 from pis3r.reconstruct.vggt.weights import FETCH_HINT, WEIGHTS_ENV, find_weights, load_vggt
 from pis3r.scene import Scene, View
@@ -112,7 +113,6 @@ def view_from_prediction(
     )
 
 
-@register("vggt")
 class VGGTBackend:
     """VGGT-1B reconstruction; ``photos[0]`` is the reference and defines the world frame.
 
@@ -146,9 +146,15 @@ class VGGTBackend:
             )
             for i, (photo, placement) in enumerate(zip(photos, placements))
         ]
-        return Scene(views, info=self._info(photos, placements, images.shape[-2:]))
+        return Scene(
+            views, model="3d", model_reason="VGGT predicts every camera and depth map",
+            focal=float(views[0].camera.K[0, 0]), focal_source="vggt",
+            warnings=self._warnings(photos, placements, images.shape[-2:]),
+            info={"backend": "vggt", "weights": str(self.weights), "device": self.device,
+                  "input_size": [int(images.shape[-1]), int(images.shape[-2])], "preprocess": self.mode},
+        )
 
-    def _info(self, photos: list[Photo], placements: list[Placement], input_hw) -> dict:
+    def _warnings(self, photos: list[Photo], placements: list[Placement], input_hw) -> tuple[str, ...]:
         warnings = []
         if self.options.focal is not None:
             warnings.append("--focal is not used by the vggt backend: VGGT predicts every camera's intrinsics")
@@ -158,13 +164,4 @@ class VGGTBackend:
                 warnings.append(
                     f"{photo.name}: rows outside VGGT's central {input_hw[0]}-row crop have no depth"
                 )
-        return {
-            "backend": "vggt",
-            "model": "3d",
-            "focal_source": "vggt",
-            "weights": str(self.weights),
-            "device": self.device,
-            "input_size": [int(input_hw[1]), int(input_hw[0])],
-            "preprocess": self.mode,
-            "warnings": warnings,
-        }
+        return tuple(warnings)

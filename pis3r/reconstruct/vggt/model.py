@@ -20,9 +20,10 @@ from pis3r.reconstruct.vggt.camera_head import CameraHead
 from pis3r.reconstruct.vggt.dpt import DPTHead
 from pis3r.reconstruct.vggt.graphs import CudaGraphCache
 from pis3r.reconstruct.vggt.layers import Block
-from pis3r.reconstruct.vggt.weights import TRACK_HEAD_PREFIX
 
 logger = logging.getLogger(__name__)
+
+TRACK_HEAD_PREFIX = "track_head."  # tensors of the track head, which pis3r does not build
 
 RELEASED_DPT_LAYERS = (4, 11, 17, 23)
 

@@ -21,7 +21,6 @@ WEIGHTS_ENV = "PIS3R_VGGT_WEIGHTS"
 HF_REPO = "facebook/VGGT-1B"
 HF_FILES = ("model.safetensors", "model.pt")
 FETCH_HINT = "get them with `pis3r fetch-weights vggt`"
-TRACK_HEAD_PREFIX = "track_head."  # tensors of the track head, which pis3r does not build
 
 if TYPE_CHECKING:  # torch is imported only when a model is loaded
     import torch
@@ -169,7 +168,7 @@ def load_vggt(path: str | os.PathLike, device: str | torch.device = "cpu") -> VG
     """
     import torch
 
-    from pis3r.reconstruct.vggt.model import VGGT
+    from pis3r.reconstruct.vggt.model import TRACK_HEAD_PREFIX, VGGT
 
     path = Path(path)
     if not path.is_file():

@@ -1,0 +1,29 @@
+"""What every reconstruction backend receives (a slice of :class:`pis3r.StitchOptions`)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL
+
+# Points whose confidence (0..1) is below this are dropped; 0 keeps all, as the paper does.
+DEFAULT_CONF_THRESHOLD = 0.0
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """Settings every backend receives; each uses the ones that concern it.
+
+    ``focal``: focal length in pixels of the input photos (overrides EXIF and
+    self-calibration); ``device``: ``"cpu"`` or ``"cuda"`` (resolved, never ``"auto"``);
+    ``weights``: a weight file for learned backends; ``conf_threshold``: drop points
+    whose confidence is below it; ``depth_fill``: how the classical backend fills depth
+    where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`).
+    """
+
+    focal: float | None = None
+    device: str = "cpu"
+    weights: str | os.PathLike | None = None
+    conf_threshold: float = DEFAULT_CONF_THRESHOLD
+    depth_fill: str = DEFAULT_DEPTH_FILL
