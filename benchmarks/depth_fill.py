@@ -19,7 +19,8 @@ import numpy as np
 
 import pis3r
 from pis3r.errors import Pis3rError
-from pis3r.eval.protocol import discover_cases, load_case, score_exact, score_failure
+from pis3r.eval.cases import discover_cases, load_case
+from pis3r.eval.scoring import score_exact, score_failure
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from pis3r.eval.baselines import MethodFailure, run_method
-from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case, score_exact, score_failure
+from pis3r.eval.cases import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case
+from pis3r.eval.scoring import score_exact, score_failure
 
 COLUMNS = ("coverage", "bar_psnr", "bar_ssim", "bar_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
 HEADER = ("cov", "PSNR", "SSIM", "LPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")

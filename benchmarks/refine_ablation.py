@@ -9,7 +9,7 @@ Synthetic: held-out pairs made exactly like the training pairs
 (``HELD_OUT_SEED + 100 + k``); scored over the closed region (``mask > 0``: everything
 a refiner may change), against the true image.
 
-Real (read-only, evaluation only): the crop protocol of :mod:`pis3r.eval.protocol`
+Real (read-only, evaluation only): the crop protocol of :mod:`pis3r.eval.cases`
 (reference = centre crop of ``ref``, GT = ``ref``); pis3r's classical canvas is placed with
 its own ``ref_offset`` and scored on the filled part of the extension (``fill_*``).
 
@@ -80,7 +80,8 @@ def stitched_canvas(case, cache: Path | None, device: str) -> tuple[np.ndarray, 
 
 def real_rows(root: Path, names: list[str], cache: Path | None, weights, steps: int, device: str,
               stitch_only: bool = False) -> list[dict]:  # fmt: skip
-    from pis3r.eval.protocol import discover_cases, load_case, score_exact
+    from pis3r.eval.cases import discover_cases, load_case
+    from pis3r.eval.scoring import score_exact
 
     rows = []
     for spec in [s for s in discover_cases(root) if s.kind == "pair" and s.name in names]:

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from pis3r.cli import main
 from pis3r.eval.baselines import MethodFailure, run_method
-from pis3r.eval.protocol import discover_cases
+from pis3r.eval.cases import discover_cases
 from pis3r.eval.runner import EvalConfig, evaluate_method
 from pis3r.io import write_png
 from tests.test_eval_protocol import rotation_pair

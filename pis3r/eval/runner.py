@@ -27,18 +27,10 @@ import numpy as np
 from pis3r.errors import InputError, Pis3rError
 from pis3r.eval import metrics
 from pis3r.eval.baselines import CAMERA_METHODS, METHODS, MethodFailure, run_method
-from pis3r.eval.protocol import (
-    Case,
-    CaseSpec,
-    exact_homography,
-    load_case,
-    place,
-    pose_error,
-    register_and_score,
-    score_failure,
-    score_geometry,
-    score_placed,
-)
+from pis3r.eval.cases import CaseSpec, EvalCase, load_case
+from pis3r.eval.geometry import pose_error, score_geometry
+from pis3r.eval.registration import exact_homography, place
+from pis3r.eval.scoring import register_and_score, score_failure, score_placed
 from pis3r.io import encode_png, write_bytes, write_json
 
 CASE_TASK = "_case"
@@ -86,7 +78,7 @@ def _preview(image: np.ndarray) -> bytes:
     return encode_png(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
 
 
-def _load(spec: CaseSpec, config: EvalConfig) -> Case:
+def _load(spec: CaseSpec, config: EvalConfig) -> EvalCase:
     # Without ground truth the methods get photo A whole (crop 1 keeps it all).
     return load_case(spec, config.crop if config.ground_truth else 1.0)
 
