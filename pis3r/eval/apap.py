@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.io import to_uint8
+from pis3r.robust import MATCH_FILTER, fit_fundamental
 from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
 
 MIN_MATCHES = 12
@@ -67,8 +68,7 @@ def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8
     pts_r = np.array([kp_r[m.queryIdx].pt for m in good], np.float64)
     pts_t = np.array([kp_t[m.trainIdx].pt for m in good], np.float64)
     threshold = max(1.0, 1e-3 * float(np.hypot(*reference.shape[:2])))
-    _, inliers = cv2.findFundamentalMat(pts_r, pts_t, cv2.USAC_MAGSAC, threshold, 0.999, 10000)
-    keep = inliers.ravel().astype(bool) if inliers is not None else np.zeros(len(pts_r), bool)
+    _, keep = fit_fundamental(pts_r, pts_t, threshold, MATCH_FILTER)
     pts_r, pts_t = pts_r[keep], pts_t[keep]
     keep = coherent_motion(pts_r, pts_t, COHERENCE_FRACTION * float(np.hypot(*reference.shape[:2])))
     if keep.sum() < MIN_MATCHES:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from pis3r.camera import fundamental_matrix
@@ -13,6 +12,7 @@ from pis3r.camera import relative_pose as camera_relative_pose
 from pis3r.eval import metrics
 from pis3r.eval.cases import EvalCase
 from pis3r.eval.registration import match_canvases
+from pis3r.robust import MATCH_FILTER, fit_fundamental
 
 # Geometry: matches between two canvases farther than this (px) from a fundamental matrix
 # fitted to them are mismatches, not distortion.
@@ -36,9 +36,9 @@ def score_geometry(canvas_ref: tuple[np.ndarray, np.ndarray, tuple[int, int]],
     camera_b = case.cameras["tgt"].shifted(*offset_b, image_b.shape[1], image_b.shape[0])
     pts_a, pts_b = match_canvases(image_a, filled_a, image_b, filled_b)
     if len(pts_a) >= 8:
-        _, inliers = cv2.findFundamentalMat(pts_a, pts_b, cv2.USAC_MAGSAC, GEOMETRY_OUTLIER_PX, 0.999, 10000)
-        if inliers is not None:
-            pts_a, pts_b = pts_a[inliers.ravel() > 0], pts_b[inliers.ravel() > 0]
+        # No fundamental matrix fits: no inliers, so no score.
+        _, inliers = fit_fundamental(pts_a, pts_b, GEOMETRY_OUTLIER_PX, MATCH_FILTER)
+        pts_a, pts_b = pts_a[inliers], pts_b[inliers]
     errors = metrics.sampson_error(fundamental_matrix(camera_a, camera_b), pts_a, pts_b) if len(pts_a) >= 8 else []
     # A rotating pair has no epipolar geometry (F = 0): every error is NaN.
     errors = np.asarray(errors)[np.isfinite(errors)]

@@ -19,6 +19,7 @@ import numpy as np
 
 from pis3r.eval.cases import EvalCase
 from pis3r.io import to_uint8
+from pis3r.robust import MATCH_FILTER, fit_homography
 
 # Registration: Lowe's ratio, MAGSAC threshold (px), and what counts as a usable homography.
 RATIO = 0.75
@@ -118,10 +119,8 @@ def register_canvas(image: np.ndarray, filled: np.ndarray, case: EvalCase) -> Re
     src, dst = match_canvases(image, filled, case.padded_reference, case.reference_region)
     if len(src) < MIN_INLIERS:
         return Registration(None, len(src), 0, f"{len(src)} matches")
-    homography, inlier_mask = cv2.findHomography(
-        src, dst, cv2.USAC_MAGSAC, MAGSAC_THRESHOLD_PX, maxIters=10000, confidence=0.999
-    )
-    inliers = int(inlier_mask.sum()) if inlier_mask is not None else 0
+    homography, inlier_mask = fit_homography(src, dst, MAGSAC_THRESHOLD_PX, MATCH_FILTER)
+    inliers = int(inlier_mask.sum())
     if homography is None or inliers < MIN_INLIERS:
         return Registration(None, len(src), inliers, f"{inliers} inliers")
     area_change = abs(np.linalg.det(homography[:2, :2] / homography[2, 2]))

@@ -6,8 +6,6 @@ All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
@@ -15,29 +13,12 @@ from scipy.spatial.transform import Rotation
 
 from pis3r.camera import intrinsics
 from pis3r.features import Matches
+from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
 
 # Fallback focal when neither the user, EXIF nor self-calibration gives one:
 # 1.2 x the longest side (about 45 deg horizontal field of view), COLMAP's prior.
 FALLBACK_FOCAL_FACTOR = 1.2
 FOCAL_RANGE = (0.3, 5.0)  # plausible focal / longest side
-
-
-@dataclass
-class TwoViewGeometry:
-    """Relative pose of view b w.r.t. view a: ``x_b = R x_a + t`` (``|t| = 1`` or 0).
-
-    ``model``: ``"3d"`` (essential matrix) or ``"homography"`` (rotation or plane:
-    ``plane_normal``/``plane_distance`` in view a's frame, ``n . X = d``).
-    ``inliers``: bool mask over the matches used.
-    """
-
-    model: str
-    R: np.ndarray
-    t: np.ndarray
-    inliers: np.ndarray
-    H: np.ndarray | None = None
-    plane_normal: np.ndarray | None = None
-    reason: str = ""
 
 
 def _pixel_scale(width: int, height: int) -> float:
@@ -49,25 +30,14 @@ def fundamental(matches: Matches, width: int, height: int) -> tuple[np.ndarray |
     """MAGSAC++ fundamental matrix ``(3, 3)`` (or None) and its inlier mask ``(N,)``."""
     if len(matches) < 8:
         return None, np.zeros(len(matches), bool)
-    F, mask = cv2.findFundamentalMat(
-        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 1.0 * _pixel_scale(width, height), 0.9999, 20000
-    )
-    if F is None or F.shape != (3, 3):
-        return None, np.zeros(len(matches), bool)
-    return F, mask.ravel().astype(bool)
+    return fit_fundamental(matches.pts_a, matches.pts_b, 1.0 * _pixel_scale(width, height), RECONSTRUCTION)
 
 
 def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
     """MAGSAC++ homography a -> b ``(3, 3)`` (or None) and its inlier mask."""
     if len(matches) < 4:
         return None, np.zeros(len(matches), bool)
-    H, mask = cv2.findHomography(
-        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 2.0 * _pixel_scale(width, height),
-        maxIters=20000, confidence=0.9999,
-    )
-    if H is None:
-        return None, np.zeros(len(matches), bool)
-    return H, mask.ravel().astype(bool)
+    return fit_homography(matches.pts_a, matches.pts_b, 2.0 * _pixel_scale(width, height), RECONSTRUCTION)
 
 
 def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
@@ -86,8 +56,8 @@ def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
         K = intrinsics(f, width, height)
         na, nb = _normalised(K, matches.pts_a), _normalised(K, matches.pts_b)
         threshold = 1.0 * _pixel_scale(width, height) / f
-        E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, threshold, 5000)
-        counts.append(0 if E is None else int(mask.sum()))
+        _, inliers = fit_essential(na, nb, threshold, FOCAL_SCAN)
+        counts.append(int(inliers.sum()))
     ranked = [float(scan[i]) for i in np.argsort(-np.array(counts), kind="stable")[:3]]
     return ranked + [FALLBACK_FOCAL_FACTOR * side]
 
@@ -125,10 +95,9 @@ def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: in
     """
     na, nb = _normalised(K_a, matches.pts_a), _normalised(K_b, matches.pts_b)
     threshold = 1.0 * _pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
-    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.9999, threshold, 20000)
-    if E is None or E.shape != (3, 3):
+    E, inliers = fit_essential(na, nb, threshold, RECONSTRUCTION)
+    if E is None:
         return None
-    inliers = mask.ravel().astype(bool)
     _, R, t, pose_mask = cv2.recoverPose(E, na[inliers], nb[inliers], np.eye(3))
     good = np.zeros(len(matches), bool)
     good[np.flatnonzero(inliers)[pose_mask.ravel() > 0]] = True
