@@ -18,11 +18,16 @@ import cv2
 import numpy as np
 
 from pis3r.eval.cases import EvalCase
+from pis3r.features import OPENCV_CONTRAST_THRESHOLD, Features, detect, match
 from pis3r.io import to_uint8
 from pis3r.robust import MATCH_FILTER, fit_homography
 
-# Registration: Lowe's ratio, MAGSAC threshold (px), and what counts as a usable homography.
+# The judge's features: at most this many SIFT keypoints, none within this many pixels
+# of the edge of a canvas's content, Lowe's ratio.
+SIFT_MAX_FEATURES = 8000
+EDGE_ERODE_PX = 5
 RATIO = 0.75
+# Registration: MAGSAC threshold (px), and what counts as a usable homography.
 MAGSAC_THRESHOLD_PX = 3.0
 MIN_INLIERS = 15
 # A stitched canvas is (close to) the reference's own perspective: a homography that
@@ -89,26 +94,21 @@ def empty_result(case: EvalCase) -> Placed:
     return Placed(case.padded_reference, case.reference_region)
 
 
-def _sift(image: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """SIFT keypoints ``(N, 2)`` and descriptors of ``(H, W, 3)`` ``image`` inside ``mask``
-    ``(H, W)`` bool, eroded so that no keypoint sits on the edge of the content."""
-    mask_u8 = cv2.erode(mask.astype(np.uint8) * 255, np.ones((5, 5), np.uint8))
-    gray = cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2GRAY)
-    keypoints, descriptors = cv2.SIFT_create(nfeatures=8000).detectAndCompute(gray, mask_u8)
-    return np.array([kp.pt for kp in keypoints], np.float32).reshape(-1, 2), descriptors
+def judge_features(image: np.ndarray, mask: np.ndarray) -> Features:
+    """The evaluation's own SIFT of ``(H, W, 3)`` ``image`` inside ``mask`` ``(H, W)`` bool,
+    eroded so that no keypoint sits on the edge of the content: plain SIFT (OpenCV's
+    defaults) at full resolution, not the method under test's detector."""
+    inside = cv2.erode(mask.astype(np.uint8) * 255, np.ones((EDGE_ERODE_PX, EDGE_ERODE_PX), np.uint8)) > 0
+    return detect(to_uint8(image), max_features=SIFT_MAX_FEATURES, max_side=None,
+                  contrast_threshold=OPENCV_CONTRAST_THRESHOLD, root_sift=False, mask=inside)
 
 
 def match_canvases(image_a: np.ndarray, mask_a: np.ndarray, image_b: np.ndarray, mask_b: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT matches (Lowe's ratio ``RATIO``) between two images, each inside its mask:
-    ``(N, 2)``, ``(N, 2)`` float32 pixels of a and of b."""
-    pts_a, desc_a = _sift(image_a, mask_a)
-    pts_b, desc_b = _sift(image_b, mask_b)
-    if desc_a is None or desc_b is None or len(pts_a) < 2 or len(pts_b) < 2:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32)
-    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_a, desc_b, k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < RATIO * p[1].distance]
-    return pts_a[[m.queryIdx for m in good]].reshape(-1, 2), pts_b[[m.trainIdx for m in good]].reshape(-1, 2)
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The evaluation's SIFT matches (:func:`judge_features`, Lowe's ratio ``RATIO`` one way)
+    between two images, each inside its mask: ``(N, 2)``, ``(N, 2)`` float32 pixels of a and b."""
+    matches = match(judge_features(image_a, mask_a), judge_features(image_b, mask_b), RATIO, mutual=False)
+    return matches.pts_a.astype(np.float32), matches.pts_b.astype(np.float32)
 
 
 def register_canvas(image: np.ndarray, filled: np.ndarray, case: EvalCase) -> Registration:
