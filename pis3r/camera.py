@@ -122,3 +122,22 @@ def fundamental_matrix(a: Camera, b: Camera) -> np.ndarray:
     R, t = relative_pose(a, b)
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)
+
+
+def sampson_distance(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
+    """Signed Sampson distance (px) of correspondences ``pts_a``, ``pts_b`` ``(N, 2)`` under
+    ``F`` ``(3, 3)`` (``x_b^T F x_a = 0``): the first-order approximation of their geometric
+    distance to the epipolar geometry,
+    ``x_b^T F x_a / (sqrt((F x_a)_1² + (F x_a)_2² + (F^T x_b)_1² + (F^T x_b)_2²) + eps)``
+    with homogeneous pixels ``x``. Returns ``(N,)`` float64, NaN where the denominator is 0
+    (both epipolar lines degenerate: the points are the epipoles, or ``F = 0``); an ``eps``
+    above 0 keeps it finite everywhere, as a least-squares residual must be."""
+    F = np.asarray(F, np.float64)
+    x_a = np.hstack([np.asarray(pts_a, np.float64), np.ones((len(pts_a), 1))])
+    x_b = np.hstack([np.asarray(pts_b, np.float64), np.ones((len(pts_b), 1))])
+    lines_b = x_a @ F.T  # F x_a: epipolar lines in image b
+    lines_a = x_b @ F  # F^T x_b: epipolar lines in image a
+    algebraic = np.sum(x_b * lines_b, axis=1)
+    norm = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2) + eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(norm > 0, algebraic / norm, np.nan)

@@ -11,10 +11,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from pis3r.camera import intrinsics
+from pis3r.camera import intrinsics, sampson_distance
 from pis3r.features import Matches
 from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
 
+# Added to the Sampson denominator so that the pose refinement's residuals stay finite.
+SAMPSON_EPS = 1e-12
 # Fallback focal when neither the user, EXIF nor self-calibration gives one:
 # 1.2 x the longest side (about 45 deg horizontal field of view), COLMAP's prior.
 FALLBACK_FOCAL_FACTOR = 1.2
@@ -106,16 +108,6 @@ def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: in
     return R, t.ravel() / np.linalg.norm(t), good
 
 
-def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ha = np.hstack([a, np.ones((len(a), 1))])
-    hb = np.hstack([b, np.ones((len(b), 1))])
-    Fa = ha @ F.T
-    Ftb = hb @ F
-    num = np.sum(hb * Fa, axis=1)
-    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2) + 1e-12
-    return num / den
-
-
 def _skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
@@ -159,7 +151,7 @@ def refine_pose(
     def residuals(p):
         Rm, tv, Ka, Kb = unpack(p)
         F = np.linalg.inv(Kb).T @ _skew(tv) @ Rm @ np.linalg.inv(Ka)
-        sampson = _sampson(F, matches.pts_a, matches.pts_b)
+        sampson = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS)
         if not refine_focal:
             return sampson
         return np.append(sampson, 3.0 * scale * p[5:])
@@ -173,7 +165,7 @@ def refine_pose(
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
     _, Rc, tc, _ = cv2.recoverPose(E, na, nb, np.eye(3))
     F = np.linalg.inv(Kb).T @ E @ np.linalg.inv(Ka)
-    r = _sampson(F, matches.pts_a, matches.pts_b) / scale
+    r = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale
     cost = float(np.sum(2.0 * (np.sqrt(1.0 + r * r) - 1.0)))
     return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, cost
 
