@@ -47,9 +47,9 @@ def main() -> None:
             means[(case.parallax_class, method)].append(row["bar_psnr"])
             print(f"{case.name:36s} {case.parallax_class:9s} {method:9s} {row['coverage']:6.2f} "
                   f"{row['bar_psnr']:7.2f} {row['bar_lpips']:7.3f}", flush=True)
-    for (cls, method), values in sorted(means.items()):
+    for (parallax_class, method), values in sorted(means.items()):
         finite = [v for v in values if math.isfinite(v)]
-        print(f"mean PSNR {cls:9s} {method:9s} {np.mean(finite) if finite else math.nan:6.2f} over {len(values)} pairs")
+        print(f"mean PSNR {parallax_class:9s} {method:9s} {np.mean(finite) if finite else math.nan:6.2f} over {len(values)} pairs")
 
 
 if __name__ == "__main__":

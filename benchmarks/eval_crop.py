@@ -61,11 +61,11 @@ def main() -> None:
               flush=True)
 
     print()
-    for cls in (*PARALLAX_CLASSES, UNKNOWN_CLASS, "all"):
-        group = [row for c, row in rows if cls in ("all", c)]
+    for parallax_class in (*PARALLAX_CLASSES, UNKNOWN_CLASS, "all"):
+        group = [row for c, row in rows if parallax_class in ("all", c)]
         if group:
             means = {k: _mean([row[k] for row in group]) for k in COLUMNS}
-            print(f"{'mean ' + cls + f' ({len(group)})':34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
+            print(f"{'mean ' + parallax_class + f' ({len(group)})':34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
     print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
 
 

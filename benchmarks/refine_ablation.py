@@ -56,7 +56,7 @@ def synthetic_rows(count: int, size: int, weights, steps: int, device: str) -> l
         region = pair.mask > 0
         for method, (image, seconds) in variants(pair.degraded, pair.raw, pair.mask, weights, steps, device).items():
             rows.append({
-                "set": "synthetic", "case": k, "parallax": pair.parallax, "method": method, "seconds": seconds,
+                "set": "synthetic", "case": k, "parallax_class": pair.parallax, "method": method, "seconds": seconds,
                 "psnr": metrics.psnr(image, pair.target, region), "ssim": metrics.ssim(image, pair.target, region),
                 "lpips": metrics.lpips(image, pair.target, region, device),
             })  # fmt: skip
@@ -98,7 +98,7 @@ def real_rows(root: Path, names: list[str], cache: Path | None, weights, steps: 
             filled = mask == 255 if method == "none" else mask > 0
             scores = score_exact(result, offset, case, filled=filled)
             rows.append({
-                "set": "real", "case": case.name, "parallax": case.parallax_class, "method": method,
+                "set": "real", "case": case.name, "parallax_class": case.parallax_class, "method": method,
                 "seconds": seconds, "megapixels": mask.size / 1e6,
                 "psnr": scores["fill_psnr"], "ssim": scores["fill_ssim"], "lpips": scores["fill_lpips"],
             })  # fmt: skip

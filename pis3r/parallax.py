@@ -44,9 +44,9 @@ LABELS = {"rotation": "pure rotation", "slight": "slight parallax", "large": "ve
 
 @dataclass
 class ParallaxEstimate:
-    """``cls``: ``rotation`` | ``slight`` | ``large``; ``level``: P_L in % of the diagonal."""
+    """``parallax_class``: ``rotation`` | ``slight`` | ``large``; ``level``: P_L in % of the diagonal."""
 
-    cls: str
+    parallax_class: str
     level: float
     h_fraction: float
     residual_median_px: float
@@ -56,10 +56,11 @@ class ParallaxEstimate:
 
     @property
     def label(self) -> str:
-        return LABELS[self.cls]
+        return LABELS[self.parallax_class]
 
     def to_dict(self) -> dict:
-        return {"class": self.cls, "label": self.label, **{k: v for k, v in asdict(self).items() if k != "cls"}}
+        fields = asdict(self)
+        return {"parallax_class": fields.pop("parallax_class"), "label": self.label, **fields}
 
 
 def classify_level(level: float) -> str:
@@ -91,7 +92,7 @@ def parallax_from_matches(matches: Matches, diagonal: float) -> ParallaxEstimate
     q90 = float(np.quantile(residual, 0.9))
     level = 100.0 * q90 / diagonal
     return ParallaxEstimate(
-        cls=classify_level(level),
+        parallax_class=classify_level(level),
         level=level,
         h_fraction=h_fraction,
         residual_median_px=float(np.median(residual)),

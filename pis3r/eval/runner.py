@@ -96,7 +96,7 @@ def evaluate_case_info(spec: CaseSpec, config: EvalConfig) -> TaskResult:
     case = _load(spec, config)
     try:
         estimate = estimate_parallax(case.reference, case.target)
-        level, estimated_class = estimate.level, estimate.cls
+        level, estimated_class = estimate.level, estimate.parallax_class
     except Pis3rError:
         level, estimated_class = math.nan, "unknown"
     row = {**_case_fields(spec), "method": CASE_TASK, "estimated_parallax_level": level,
