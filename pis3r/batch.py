@@ -20,6 +20,7 @@ from pathlib import Path
 import click
 
 from pis3r import io
+from pis3r.cluster import dask_client
 from pis3r.errors import InputError, Pis3rError
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -104,20 +105,6 @@ def encode_summary(rows: list[dict]) -> bytes:
     return buffer.getvalue().encode()
 
 
-def _connect(workers: int, scheduler: str | None):
-    """A dask client: to ``scheduler`` when given, else to a fresh local cluster on 127.0.0.1."""
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            return Client(scheduler, timeout="20s")
-        except OSError as exc:
-            raise InputError(f"cannot reach the dask scheduler at {scheduler}: {one_line(exc)}") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None)
-    return Client(cluster)
-
-
 def run_batch(
     source: Path,
     outdir: Path,
@@ -145,8 +132,7 @@ def run_batch(
 
     with tqdm(total=len(cases), initial=len(rows), unit="case", disable=not progress) as bar:
         if todo:
-            client = _connect(workers, scheduler)
-            try:
+            with dask_client(workers, scheduler) as client:
                 futures = {client.submit(run_case, case, outdir, options or {}, pure=False): case for case in todo}
                 for future in as_completed(futures):
                     case = futures[future]
@@ -157,11 +143,6 @@ def run_batch(
                                            "reason": f"worker lost: {one_line(exc)}"}
                     bar.update(1)
                     write_summary()
-            finally:
-                cluster = client.cluster
-                client.close()
-                if cluster is not None:
-                    cluster.close()
     write_summary()
     return [rows[case.name] for case in cases]
 

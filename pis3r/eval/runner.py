@@ -15,7 +15,6 @@ parallax level estimated from the inputs and the previews of GT, reference and t
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 from dataclasses import dataclass
@@ -24,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pis3r.cluster import dask_client
 from pis3r.errors import InputError, Pis3rError
 from pis3r.eval import metrics
 from pis3r.eval.baselines import CAMERA_METHODS, METHODS, MethodFailure, run_method
@@ -213,7 +213,7 @@ def run_evaluation(
     ``workers``: processes of the local dask cluster (on 127.0.0.1); ``scheduler``: address
     of an existing cluster instead. Returns all rows (cached and new) and one line per task
     that raised an error of the evaluation itself."""
-    from dask.distributed import Client, LocalCluster, as_completed
+    from distributed import as_completed
     from tqdm import tqdm
 
     outdir = Path(outdir)
@@ -229,11 +229,7 @@ def run_evaluation(
     ]
     errors = []
     if todo:
-        cluster = None if scheduler else LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
-            silence_logs=logging.ERROR,  # the progress bar says what happens; worker chatter does not
-        )
-        with Client(scheduler or cluster) as client:
+        with dask_client(workers, scheduler) as client:
             futures = {client.submit(_task, spec, method, config, pure=False): (spec.name, method)
                        for spec, method in todo}
             with tqdm(total=len(futures), desc="pis3r eval", unit="run", disable=not progress) as bar:
@@ -244,6 +240,4 @@ def run_evaluation(
                     except Exception as exc:  # an evaluation bug must not lose the other results
                         errors.append(f"{case_name} / {method}: {exc.__class__.__name__}: {exc}")
                     bar.update()
-        if cluster is not None:
-            cluster.close()
     return load_results(outdir), errors
