@@ -53,6 +53,7 @@ def test_without_ground_truth_methods_get_no_reference_scores(tmp_path):
     assert "bar_psnr" not in row
 
 
+@pytest.mark.slow
 def test_eval_command_end_to_end_and_resume(tmp_path):
     data = tiny_dataset(tmp_path / "tiny")
     report = tmp_path / "report"

@@ -190,6 +190,7 @@ def test_parallax_classes_from_sources_table(tmp_path):
     assert parallax_classes_from_sources(sources) == {"a": "rotation", "b": "slight", "c": "large", "d": "unknown"}
 
 
+@pytest.mark.slow
 @needs_real_data
 def test_real_dataset_cases_and_calibration():
     specs = {s.name: s for s in discover_cases(REAL)}
