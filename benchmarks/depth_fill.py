@@ -49,7 +49,8 @@ def main() -> None:
                   f"{row['bar_psnr']:7.2f} {row['bar_lpips']:7.3f}", flush=True)
     for (parallax_class, method), values in sorted(means.items()):
         finite = [v for v in values if math.isfinite(v)]
-        print(f"mean PSNR {parallax_class:9s} {method:9s} {np.mean(finite) if finite else math.nan:6.2f} over {len(values)} pairs")
+        mean = np.mean(finite) if finite else math.nan
+        print(f"mean PSNR {parallax_class:9s} {method:9s} {mean:6.2f} over {len(values)} pairs")
 
 
 if __name__ == "__main__":

@@ -65,7 +65,8 @@ def main() -> None:
         group = [row for c, row in rows if parallax_class in ("all", c)]
         if group:
             means = {k: _mean([row[k] for row in group]) for k in COLUMNS}
-            print(f"{'mean ' + parallax_class + f' ({len(group)})':34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
+            label = f"mean {parallax_class} ({len(group)})"
+            print(f"{label:34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
     print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
 
 

@@ -6,7 +6,13 @@ import pytest
 from skimage import data
 
 from pis3r.eval.apap import SIFT_MAX_FEATURES as APAP_FEATURES
-from pis3r.eval.registration import EDGE_ERODE_PX, RATIO, SIFT_MAX_FEATURES, judge_features, match_canvases
+from pis3r.eval.registration import (
+    EDGE_ERODE_KERNEL_PX,
+    RATIO,
+    SIFT_MAX_FEATURES,
+    judge_features,
+    match_canvases,
+)
 from pis3r.features import detect, match, to_gray_u8
 from pis3r.io import to_uint8
 
@@ -51,7 +57,8 @@ def test_evaluation_detection_is_plain_opencv_sift_inside_the_eroded_mask(pair):
     filled = np.zeros(image.shape[:2], bool)
     filled[20:180, 30:200] = True
     features = judge_features(image, filled)
-    eroded = cv2.erode(filled.astype(np.uint8) * 255, np.ones((EDGE_ERODE_PX, EDGE_ERODE_PX), np.uint8))
+    kernel = np.ones((EDGE_ERODE_KERNEL_PX, EDGE_ERODE_KERNEL_PX), np.uint8)
+    eroded = cv2.erode(filled.astype(np.uint8) * 255, kernel)
     points, descriptors = opencv_sift(cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2GRAY), eroded,
                                       nfeatures=SIFT_MAX_FEATURES)
     assert len(points) > 50 and not features.root_sift

@@ -6,8 +6,8 @@ Two ways, the same for every method:
   on their canvas (pis3r's ``ref_offset``): a pure translation, no registration;
 - **registered** (:func:`register_canvas`, the paper's "pad, register, compute"): the stitched
   image is registered to the reference padded to the GT size at its offset with one
-  feature-based homography (SIFT + MAGSAC). A canvas that cannot be registered is a
-  registration failure (RSR).
+  feature-based homography: the evaluation's own plain SIFT (not the detector of the method
+  under test) + MAGSAC. A canvas that cannot be registered is a registration failure (RSR).
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from pis3r.features import OPENCV_CONTRAST_THRESHOLD, Features, detect, match
 from pis3r.io import to_uint8
 from pis3r.robust import MATCH_FILTER, fit_homography
 
-# The judge's features: at most this many SIFT keypoints, none within this many pixels
-# of the edge of a canvas's content, Lowe's ratio.
+# The judge's features: at most this many SIFT keypoints, inside the content eroded by a
+# square of this side (no keypoint on its edge), Lowe's ratio.
 SIFT_MAX_FEATURES = 8000
-EDGE_ERODE_PX = 5
+EDGE_ERODE_KERNEL_PX = 5
 RATIO = 0.75
 # Registration: MAGSAC threshold (px), and what counts as a usable homography.
 MAGSAC_THRESHOLD_PX = 3.0
@@ -98,7 +98,8 @@ def judge_features(image: np.ndarray, mask: np.ndarray) -> Features:
     """The evaluation's own SIFT of ``(H, W, 3)`` ``image`` inside ``mask`` ``(H, W)`` bool,
     eroded so that no keypoint sits on the edge of the content: plain SIFT (OpenCV's
     defaults) at full resolution, not the method under test's detector."""
-    inside = cv2.erode(mask.astype(np.uint8) * 255, np.ones((EDGE_ERODE_PX, EDGE_ERODE_PX), np.uint8)) > 0
+    kernel = np.ones((EDGE_ERODE_KERNEL_PX, EDGE_ERODE_KERNEL_PX), np.uint8)
+    inside = cv2.erode(mask.astype(np.uint8) * 255, kernel) > 0
     return detect(to_uint8(image), max_features=SIFT_MAX_FEATURES, max_side=None,
                   contrast_threshold=OPENCV_CONTRAST_THRESHOLD, root_sift=False, mask=inside)
 
