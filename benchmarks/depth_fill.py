@@ -19,7 +19,8 @@ import numpy as np
 
 import pis3r
 from pis3r.errors import Pis3rError
-from pis3r.eval.protocol import discover_cases, load_case, score_exact, score_failure
+from pis3r.eval.cases import discover_cases, load_case
+from pis3r.eval.scoring import score_exact, score_failure
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
@@ -46,9 +47,10 @@ def main() -> None:
             means[(case.parallax_class, method)].append(row["bar_psnr"])
             print(f"{case.name:36s} {case.parallax_class:9s} {method:9s} {row['coverage']:6.2f} "
                   f"{row['bar_psnr']:7.2f} {row['bar_lpips']:7.3f}", flush=True)
-    for (cls, method), values in sorted(means.items()):
+    for (parallax_class, method), values in sorted(means.items()):
         finite = [v for v in values if math.isfinite(v)]
-        print(f"mean PSNR {cls:9s} {method:9s} {np.mean(finite) if finite else math.nan:6.2f} over {len(values)} pairs")
+        mean = np.mean(finite) if finite else math.nan
+        print(f"mean PSNR {parallax_class:9s} {method:9s} {mean:6.2f} over {len(values)} pairs")
 
 
 if __name__ == "__main__":

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from pis3r.eval.baselines import MethodFailure, run_method
-from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case, score_exact, score_failure
+from pis3r.eval.cases import PARALLAX_CLASSES, UNKNOWN_CLASS, discover_cases, load_case
+from pis3r.eval.scoring import score_exact, score_failure
 
 COLUMNS = ("coverage", "bar_psnr", "bar_ssim", "bar_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
 HEADER = ("cov", "PSNR", "SSIM", "LPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
@@ -60,11 +61,12 @@ def main() -> None:
               flush=True)
 
     print()
-    for cls in (*PARALLAX_CLASSES, UNKNOWN_CLASS, "all"):
-        group = [row for c, row in rows if cls in ("all", c)]
+    for parallax_class in (*PARALLAX_CLASSES, UNKNOWN_CLASS, "all"):
+        group = [row for c, row in rows if parallax_class in ("all", c)]
         if group:
             means = {k: _mean([row[k] for row in group]) for k in COLUMNS}
-            print(f"{'mean ' + cls + f' ({len(group)})':34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
+            label = f"mean {parallax_class} ({len(group)})"
+            print(f"{label:34s} {'':9s} " + " ".join(_fmt(means[k]) for k in COLUMNS))
     print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
 
 

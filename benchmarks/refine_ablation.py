@@ -9,7 +9,7 @@ Synthetic: held-out pairs made exactly like the training pairs
 (``HELD_OUT_SEED + 100 + k``); scored over the closed region (``mask > 0``: everything
 a refiner may change), against the true image.
 
-Real (read-only, evaluation only): the crop protocol of :mod:`pis3r.eval.protocol`
+Real (read-only, evaluation only): the crop protocol of :mod:`pis3r.eval.cases`
 (reference = centre crop of ``ref``, GT = ``ref``); pis3r's classical canvas is placed with
 its own ``ref_offset`` and scored on the filled part of the extension (``fill_*``).
 
@@ -56,7 +56,7 @@ def synthetic_rows(count: int, size: int, weights, steps: int, device: str) -> l
         region = pair.mask > 0
         for method, (image, seconds) in variants(pair.degraded, pair.raw, pair.mask, weights, steps, device).items():
             rows.append({
-                "set": "synthetic", "case": k, "parallax": pair.parallax, "method": method, "seconds": seconds,
+                "set": "synthetic", "case": k, "parallax_class": pair.parallax, "method": method, "seconds": seconds,
                 "psnr": metrics.psnr(image, pair.target, region), "ssim": metrics.ssim(image, pair.target, region),
                 "lpips": metrics.lpips(image, pair.target, region, device),
             })  # fmt: skip
@@ -80,7 +80,8 @@ def stitched_canvas(case, cache: Path | None, device: str) -> tuple[np.ndarray, 
 
 def real_rows(root: Path, names: list[str], cache: Path | None, weights, steps: int, device: str,
               stitch_only: bool = False) -> list[dict]:  # fmt: skip
-    from pis3r.eval.protocol import discover_cases, load_case, score_exact
+    from pis3r.eval.cases import discover_cases, load_case
+    from pis3r.eval.scoring import score_exact
 
     rows = []
     for spec in [s for s in discover_cases(root) if s.kind == "pair" and s.name in names]:
@@ -97,7 +98,7 @@ def real_rows(root: Path, names: list[str], cache: Path | None, weights, steps: 
             filled = mask == 255 if method == "none" else mask > 0
             scores = score_exact(result, offset, case, filled=filled)
             rows.append({
-                "set": "real", "case": case.name, "parallax": case.parallax_class, "method": method,
+                "set": "real", "case": case.name, "parallax_class": case.parallax_class, "method": method,
                 "seconds": seconds, "megapixels": mask.size / 1e6,
                 "psnr": scores["fill_psnr"], "ssim": scores["fill_ssim"], "lpips": scores["fill_lpips"],
             })  # fmt: skip

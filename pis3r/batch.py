@@ -21,7 +21,8 @@ import click
 
 from pis3r import io
 from pis3r.cli_options import click_options
-from pis3r.errors import InputError, Pis3rError
+from pis3r.cluster import dask_client
+from pis3r.errors import InputError, Pis3rError, one_line
 from pis3r.options import OPTION_NAMES, StitchOptions
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
@@ -74,10 +75,6 @@ def is_finished(case_dir: Path) -> bool:
     return all((case_dir / name).is_file() for name in CASE_OUTPUTS)
 
 
-def one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[0] if text else exc.__class__.__name__
-
 
 def run_case(case: BatchCase, outdir: Path, options: StitchOptions) -> dict:
     """Stitch one case into ``outdir/<case>/``; never raises, returns its summary row."""
@@ -87,7 +84,7 @@ def run_case(case: BatchCase, outdir: Path, options: StitchOptions) -> dict:
     try:
         result = stitch(list(case.images), options)
         result.save(Path(outdir) / case.name)
-        status, reason, parallax = "ok", "", result.report["parallax"]["class"]
+        status, reason, parallax = "ok", "", result.report["parallax"]["parallax_class"]
     except Pis3rError as exc:
         status, reason, parallax = "failed", one_line(exc), ""
     except MemoryError:
@@ -104,20 +101,6 @@ def encode_summary(rows: list[dict]) -> bytes:
     writer.writeheader()
     writer.writerows(rows)
     return buffer.getvalue().encode()
-
-
-def _connect(workers: int, scheduler: str | None):
-    """A dask client: to ``scheduler`` when given, else to a fresh local cluster on 127.0.0.1."""
-    from distributed import Client, LocalCluster
-
-    if scheduler:
-        try:
-            return Client(scheduler, timeout="20s")
-        except OSError as exc:
-            raise InputError(f"cannot reach the dask scheduler at {scheduler}: {one_line(exc)}") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None)
-    return Client(cluster)
 
 
 def run_batch(
@@ -151,8 +134,7 @@ def run_batch(
 
     with tqdm(total=len(cases), initial=len(rows), unit="case", disable=not progress) as bar:
         if todo:
-            client = _connect(workers, scheduler)
-            try:
+            with dask_client(workers, scheduler) as client:
                 futures = {client.submit(run_case, case, outdir, options, pure=False): case for case in todo}
                 for future in as_completed(futures):
                     case = futures[future]
@@ -163,11 +145,6 @@ def run_batch(
                                            "reason": f"worker lost: {one_line(exc)}"}
                     bar.update(1)
                     write_summary()
-            finally:
-                cluster = client.cluster
-                client.close()
-                if cluster is not None:
-                    cluster.close()
     write_summary()
     return [rows[case.name] for case in cases]
 

@@ -2,6 +2,10 @@
 
 ``x_cam = R @ x_world + t`` and ``u = K @ x_cam / z``; pixel centres sit at
 integer coordinates ``0..W-1``. Every stage of pis3r speaks this convention.
+
+Besides :class:`Camera`: two-view relations (:func:`relative_pose`,
+:func:`fundamental_matrix`, :func:`sampson_distance`), depth maps reprojected from one
+camera into another (:func:`transfer`, :func:`bilinear`) and rotation helpers.
 """
 
 from __future__ import annotations
@@ -122,3 +126,93 @@ def fundamental_matrix(a: Camera, b: Camera) -> np.ndarray:
     R, t = relative_pose(a, b)
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)
+
+
+def sampson_distance(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
+    """Signed Sampson distance (px) of correspondences ``pts_a``, ``pts_b`` ``(N, 2)`` under
+    ``F`` ``(3, 3)`` (``x_b^T F x_a = 0``): the first-order approximation of their geometric
+    distance to the epipolar geometry,
+    ``x_b^T F x_a / (sqrt((F x_a)_1² + (F x_a)_2² + (F^T x_b)_1² + (F^T x_b)_2²) + eps)``
+    with homogeneous pixels ``x``. Returns ``(N,)`` float64, NaN where the denominator is 0
+    (both epipolar lines degenerate: the points are the epipoles, or ``F = 0``); an ``eps``
+    above 0 keeps it finite everywhere, as a least-squares residual must be."""
+    F = np.asarray(F, np.float64)
+    x_a = np.hstack([np.asarray(pts_a, np.float64), np.ones((len(pts_a), 1))])
+    x_b = np.hstack([np.asarray(pts_b, np.float64), np.ones((len(pts_b), 1))])
+    lines_b = x_a @ F.T  # F x_a: epipolar lines in image b
+    lines_a = x_b @ F  # F^T x_b: epipolar lines in image a
+    algebraic = np.sum(x_b * lines_b, axis=1)
+    norm = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2) + eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(norm > 0, algebraic / norm, np.nan)
+
+
+@dataclass(frozen=True)
+class Transfer:
+    """Where the pixels of a source depth map land in a destination camera:
+    ``uv (H, W, 2)`` destination pixels, ``z (H, W)`` destination depth, ``visible (H, W)``:
+    in front, inside the destination image (``0 <= u <= W-1``, ``0 <= v <= H-1``, so
+    bilinear sampling there is defined) and, if its depth was given, unoccluded."""
+
+    uv: np.ndarray
+    z: np.ndarray
+    visible: np.ndarray
+
+
+def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Sample ``image (H, W[, C])`` at ``uv (N, 2)`` pixels inside ``[0, W-1] x [0, H-1]``."""
+    h, w = image.shape[:2]
+    x0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
+    y0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
+    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
+    if image.ndim == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def transfer(depth: np.ndarray, source: Camera, destination: Camera,
+             destination_depth: np.ndarray | None = None, tolerance: float = 0.01, near: float = 0.0) -> Transfer:
+    """Reproject a z-depth map ``(H, W)`` of ``source`` into ``destination`` (non-finite
+    depth: no point; a point is in front when its destination depth exceeds ``near``).
+
+    Occlusion (when ``destination_depth``, sized to ``destination``, is given) is the
+    z-buffer test of the destination view: the point's inverse depth must be within
+    ``tolerance`` (relative) of the destination's inverse depth interpolated bilinearly
+    at ``uv``. Inverse depth is affine in the image on a plane, so the test is exact on
+    surfaces seen at grazing angles and rejects points next to depth edges."""
+    R, t = relative_pose(source, destination)
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    finite = np.isfinite(depth)
+    # destination homogeneous pixel = K_d (R z K_s^-1 [u v 1] + t) = z * A [u v 1] + K_d t
+    A = destination.K @ R @ np.linalg.inv(source.K)
+    z_src = np.where(finite, depth, 1.0)[..., None]
+    uvw = z_src * (np.stack([u, v, np.ones_like(u)], axis=-1) @ A.T) + destination.K @ t
+    z = uvw[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = uvw[..., :2] / z[..., None]
+        visible = (finite & (z > near) & (uv[..., 0] >= 0) & (uv[..., 0] <= destination.width - 1)
+                   & (uv[..., 1] >= 0) & (uv[..., 1] <= destination.height - 1))
+    if destination_depth is not None:
+        inverse = 1.0 / destination_depth.astype(np.float64)  # 0 where nothing was hit
+        seen = bilinear(inverse, uv[visible])
+        visible[visible] = np.abs(seen * z[visible] - 1.0) <= tolerance
+    return Transfer(uv, z, visible)
+
+
+def rotation_from_angles(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """``(3, 3)`` camera orientation (columns: camera axes in the parent frame) for yaw about
+    y (to the right), pitch about x (downwards), roll about z, in degrees, applied
+    yaw-pitch-roll; the world-to-camera ``R`` is its transpose."""
+    a, b, c = np.radians([yaw, pitch, roll])
+    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), np.sin(b)], [0, -np.sin(b), np.cos(b)]])
+    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+    return ry @ rx @ rz
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle (degrees) of the rotation ``R`` ``(3, 3)`` about its axis."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))

@@ -41,3 +41,12 @@ class OutputError(Pis3rError):
     """Results could not be written (unwritable directory, full disk...)."""
 
     exit_code = 5
+
+
+def one_line(exc: BaseException, with_type: bool = False) -> str:
+    """The first line of an exception's message (its class name when the message is empty),
+    after ``ClassName: `` with ``with_type`` (for errors of libraries, whose type says most)."""
+    text = str(exc).strip().splitlines()
+    if not text:
+        return exc.__class__.__name__
+    return f"{exc.__class__.__name__}: {text[0].strip()}" if with_type else text[0].strip()

@@ -33,6 +33,7 @@ import numpy as np
 
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import Matches, match_images
+from pis3r.robust import MATCH_FILTER, fit_fundamental, fit_homography
 
 ROTATION_MAX = 0.28
 SLIGHT_MAX = 1.0
@@ -43,9 +44,9 @@ LABELS = {"rotation": "pure rotation", "slight": "slight parallax", "large": "ve
 
 @dataclass
 class ParallaxEstimate:
-    """``cls``: ``rotation`` | ``slight`` | ``large``; ``level``: P_L in % of the diagonal."""
+    """``parallax_class``: ``rotation`` | ``slight`` | ``large``; ``level``: P_L in % of the diagonal."""
 
-    cls: str
+    parallax_class: str
     level: float
     h_fraction: float
     residual_median_px: float
@@ -55,10 +56,11 @@ class ParallaxEstimate:
 
     @property
     def label(self) -> str:
-        return LABELS[self.cls]
+        return LABELS[self.parallax_class]
 
     def to_dict(self) -> dict:
-        return {"class": self.cls, "label": self.label, **{k: v for k, v in asdict(self).items() if k != "cls"}}
+        fields = asdict(self)
+        return {"parallax_class": fields.pop("parallax_class"), "label": self.label, **fields}
 
 
 def classify_level(level: float) -> str:
@@ -75,14 +77,11 @@ def parallax_from_matches(matches: Matches, diagonal: float) -> ParallaxEstimate
     if n < MIN_MATCHES:
         raise NotEnoughOverlapError(f"these images do not overlap enough to stitch: {n} matches")
     px = diagonal / np.hypot(1024, 768)
-    _, f_inl = cv2.findFundamentalMat(
-        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, max(1.0, 1.0 * px), 0.999, 10000
-    )
-    keep = f_inl.ravel().astype(bool) if f_inl is not None else np.ones(n, bool)
-    if keep.sum() < MIN_MATCHES:
+    _, keep = fit_fundamental(matches.pts_a, matches.pts_b, max(1.0, 1.0 * px), MATCH_FILTER)
+    if keep.sum() < MIN_MATCHES:  # no usable epipolar geometry: measure on every match
         keep = np.ones(n, bool)
     a, b = matches.pts_a[keep], matches.pts_b[keep]
-    H, h_inl = cv2.findHomography(a, b, cv2.USAC_MAGSAC, 2.0 * px, maxIters=10000, confidence=0.999)
+    H, h_inl = fit_homography(a, b, 2.0 * px, MATCH_FILTER)
     if H is None:
         residual = np.full(len(a), diagonal)
         h_fraction = 0.0
@@ -93,7 +92,7 @@ def parallax_from_matches(matches: Matches, diagonal: float) -> ParallaxEstimate
     q90 = float(np.quantile(residual, 0.9))
     level = 100.0 * q90 / diagonal
     return ParallaxEstimate(
-        cls=classify_level(level),
+        parallax_class=classify_level(level),
         level=level,
         h_fraction=h_fraction,
         residual_median_px=float(np.median(residual)),

@@ -67,7 +67,7 @@ def test_reference_index_and_report(small_pair):
     ox, oy = result.ref_offset
     h, w = small_pair[1].shape[:2]
     np.testing.assert_allclose(result.image[oy:oy + h, ox:ox + w], small_pair[1] / 255.0, atol=1e-6)
-    assert result.report["parallax"]["class"] == "rotation"
+    assert result.report["parallax"]["parallax_class"] == "rotation"
     assert result.report["model"] == "homography"
     assert sum(result.report["fractions"].values()) == pytest.approx(1.0, abs=1e-3)
 

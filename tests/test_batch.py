@@ -16,6 +16,7 @@ def summary(outdir):
         return {row["case"]: row for row in csv.DictReader(handle)}
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:Port 8787 is already in use")
 def test_batch_isolates_a_broken_case_and_resumes(small_pair, tmp_path):
     cases = tmp_path / "cases"

@@ -1,6 +1,6 @@
 import numpy as np
 
-from pis3r.camera import Camera, fundamental_matrix, intrinsics
+from pis3r.camera import Camera, fundamental_matrix, intrinsics, sampson_distance
 from tests.analytic import rotation_y
 
 
@@ -38,6 +38,17 @@ def test_fundamental_matrix_of_two_cameras():
     xb = np.hstack([b.project(world)[0], np.ones((20, 1))])
     F = fundamental_matrix(a, b)
     assert np.abs(np.sum(xb * (xa @ F.T), axis=1)).max() < 1e-9 * np.abs(F).max() * 1e4
+
+
+def test_sampson_distance_is_signed_and_undefined_only_at_the_epipoles():
+    # Rectified pair: x_b^T F x_a = y_a - y_b and both lines have unit normals: d = (y_a - y_b) / sqrt(2).
+    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    pts_a = np.array([[10.0, 20.0], [50.0, 7.0]])
+    pts_b = np.array([[40.0, 20.0], [5.0, 10.0]])
+    np.testing.assert_allclose(sampson_distance(F, pts_a, pts_b), [0.0, -3.0 / np.sqrt(2)])
+    # No epipolar geometry (F = 0): undefined, unless the least-squares guard is asked for.
+    assert np.isnan(sampson_distance(np.zeros((3, 3)), pts_a, pts_b)).all()
+    assert not sampson_distance(np.zeros((3, 3)), pts_a, pts_b, eps=1e-12).any()
 
 
 def test_dict_round_trip():

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from pis3r.cli import main
 from pis3r.eval.baselines import MethodFailure, run_method
-from pis3r.eval.protocol import discover_cases
+from pis3r.eval.cases import discover_cases
 from pis3r.eval.runner import EvalConfig, evaluate_method
 from pis3r.io import write_png
 from tests.test_eval_protocol import rotation_pair
@@ -53,6 +53,7 @@ def test_without_ground_truth_methods_get_no_reference_scores(tmp_path):
     assert "bar_psnr" not in row
 
 
+@pytest.mark.slow
 def test_eval_command_end_to_end_and_resume(tmp_path):
     data = tiny_dataset(tmp_path / "tiny")
     report = tmp_path / "report"

@@ -13,21 +13,10 @@ from skimage import data as skdata
 from pis3r.camera import Camera, intrinsics
 from pis3r.eval import metrics
 from pis3r.eval.apap import apap_stitch
-from pis3r.eval.protocol import (
-    crop_case,
-    discover_cases,
-    exact_homography,
-    load_case,
-    lpips_map,
-    parallax_classes_from_sources,
-    place,
-    pose_error,
-    register,
-    score_exact,
-    score_failure,
-    score_geometry,
-    score_registered,
-)
+from pis3r.eval.cases import crop_case, discover_cases, load_case, parallax_classes_from_sources
+from pis3r.eval.geometry import pose_error, score_geometry
+from pis3r.eval.registration import exact_homography, place, register_canvas
+from pis3r.eval.scoring import lpips_map, score_exact, score_failure, score_registered
 from pis3r.eval.report import TABLE3, mean_of
 from tests.conftest import REAL, needs_real_data
 
@@ -98,7 +87,7 @@ def test_shared_lpips_map_gives_the_masked_metric():
 def test_five_pixel_shift_is_registered_back():
     case, _ = rotation_pair()
     canvas, filled = shifted(case.gt, 5)
-    registration = register(canvas, filled, case)
+    registration = register_canvas(canvas, filled, case)
     assert registration.ok
     # Canvas pixel x + 5 is GT pixel x: the homography is a shift by -5 px.
     assert np.allclose(registration.homography / registration.homography[2, 2], np.array(
@@ -201,6 +190,7 @@ def test_parallax_classes_from_sources_table(tmp_path):
     assert parallax_classes_from_sources(sources) == {"a": "rotation", "b": "slight", "c": "large", "d": "unknown"}
 
 
+@pytest.mark.slow
 @needs_real_data
 def test_real_dataset_cases_and_calibration():
     specs = {s.name: s for s in discover_cases(REAL)}

@@ -96,3 +96,13 @@ def test_no_module_imports_one_that_imports_it_back():
 def test_no_module_is_over_400_lines():
     sizes = {path.relative_to(PACKAGE.parent): len(path.read_text().splitlines()) for path in PACKAGE.rglob("*.py")}
     assert {path: lines for path, lines in sizes.items() if lines > MAX_MODULE_LINES} == {}
+
+
+def _files_mentioning(text: str) -> set[str]:
+    return {str(path.relative_to(PACKAGE.parent)) for path in PACKAGE.rglob("*.py") if text in path.read_text()}
+
+
+def test_one_sift_setup_one_robust_fit_module_one_dask_cluster():
+    assert _files_mentioning("SIFT_create(") == {"pis3r/features.py"}
+    assert _files_mentioning("cv2.USAC_") | _files_mentioning("cv2.RANSAC") == {"pis3r/robust.py"}
+    assert _files_mentioning("LocalCluster(") == {"pis3r/cluster.py"}

@@ -9,14 +9,13 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from pis3r.camera import Camera, intrinsics
+from pis3r.camera import Camera, bilinear, intrinsics, rotation_from_angles, transfer
 from pis3r.errors import InputError
 from pis3r.synth import CLASSES, demo_pair, make_case, make_scene, write_case
-from pis3r.synth.cases import bilinear, rotation_matrix, transfer
 from pis3r.synth.command import synth_command
 from pis3r.synth.dataset import plan
 from pis3r.synth.render import render, render_colour, render_depth
-from pis3r.synth.scenes import Mesh, Scene, quad
+from pis3r.synth.scenes import Mesh, SynthScene, quad
 from pis3r.synth.textures import folder_textures
 
 SIZE = (160, 120)
@@ -24,7 +23,7 @@ SEED = 3
 
 
 @pytest.fixture(scope="module")
-def scene() -> Scene:
+def scene() -> SynthScene:
     return make_scene(11)
 
 
@@ -34,10 +33,10 @@ def cases(scene):
     return {c: make_case(SEED, SIZE, c, scene=scene) for c in CLASSES}
 
 
-def white_quad(corners: np.ndarray) -> Scene:
+def white_quad(corners: np.ndarray) -> SynthScene:
     """A scene holding one white quad ``corners (4, 3)`` and nothing else."""
     mesh = Mesh.concat([quad(corners, (1.0, 1.0), 0, np.ones(3))])
-    return Scene(mesh, np.full((1, 8, 8, 3), 255, np.uint8), ("white",), np.zeros(3))
+    return SynthScene(mesh, np.full((1, 8, 8, 3), 255, np.uint8), ("white",), np.zeros(3))
 
 
 def tilted_camera() -> Camera:
@@ -45,7 +44,7 @@ def tilted_camera() -> Camera:
     K = intrinsics(150.0, 96, 72)
     K[1, 1] = 160.0
     K[:2, 2] += (3.3, -2.1)
-    R = rotation_matrix(8.0, -5.0, 12.0).T
+    R = rotation_from_angles(8.0, -5.0, 12.0).T
     return Camera(K, R, -R @ np.array([0.2, -0.1, -0.3]), 96, 72)
 
 

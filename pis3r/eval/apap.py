@@ -26,10 +26,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pis3r.errors import NotEnoughOverlapError
+from pis3r.features import OPENCV_CONTRAST_THRESHOLD, detect, match
 from pis3r.io import to_uint8
+from pis3r.robust import MATCH_FILTER, fit_fundamental
 from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
 
 MIN_MATCHES = 12
+SIFT_MAX_FEATURES = 6000
 # Matches kept at most (the weighted sums cost cells x matches x 81).
 MAX_MATCHES = 3000
 # A match moving farther than this share of the image diagonal from its neighbours' median
@@ -50,25 +53,24 @@ class ApapResult:
 
 
 def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), cleaned
+    """Plain SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), cleaned
     in two steps that both keep matches off any single plane (which APAP's local
     homographies need): a MAGSAC fundamental matrix, then :func:`coherent_motion` for the
     mismatches that happen to lie near their epipolar line (all of them, for a rotating
     camera, whose fundamental matrix is undetermined)."""
-    sift = cv2.SIFT_create(nfeatures=6000)
-    kp_r, desc_r = sift.detectAndCompute(cv2.cvtColor(to_uint8(reference), cv2.COLOR_RGB2GRAY), None)
-    kp_t, desc_t = sift.detectAndCompute(cv2.cvtColor(to_uint8(target), cv2.COLOR_RGB2GRAY), None)
-    if desc_r is None or desc_t is None or len(kp_r) < 2 or len(kp_t) < 2:
+    features_ref, features_tgt = (
+        detect(to_uint8(image), max_features=SIFT_MAX_FEATURES, max_side=None,
+               contrast_threshold=OPENCV_CONTRAST_THRESHOLD, root_sift=False)
+        for image in (reference, target)
+    )
+    if len(features_ref.points) < 2 or len(features_tgt.points) < 2:
         raise NotEnoughOverlapError("APAP: no features")
-    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc_r, desc_t, k=2)
-    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
-    if len(good) < MIN_MATCHES:
-        raise NotEnoughOverlapError(f"APAP: {len(good)} matches")
-    pts_r = np.array([kp_r[m.queryIdx].pt for m in good], np.float64)
-    pts_t = np.array([kp_t[m.trainIdx].pt for m in good], np.float64)
+    matches = match(features_ref, features_tgt, ratio, mutual=False)
+    if len(matches) < MIN_MATCHES:
+        raise NotEnoughOverlapError(f"APAP: {len(matches)} matches")
+    pts_r, pts_t = matches.pts_a, matches.pts_b
     threshold = max(1.0, 1e-3 * float(np.hypot(*reference.shape[:2])))
-    _, inliers = cv2.findFundamentalMat(pts_r, pts_t, cv2.USAC_MAGSAC, threshold, 0.999, 10000)
-    keep = inliers.ravel().astype(bool) if inliers is not None else np.zeros(len(pts_r), bool)
+    _, keep = fit_fundamental(pts_r, pts_t, threshold, MATCH_FILTER)
     pts_r, pts_t = pts_r[keep], pts_t[keep]
     keep = coherent_motion(pts_r, pts_t, COHERENCE_FRACTION * float(np.hypot(*reference.shape[:2])))
     if keep.sum() < MIN_MATCHES:

@@ -74,12 +74,15 @@ def _from_bgr_canvas(canvas: np.ndarray) -> Canvas:
 
 
 def stitch_pis3r(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
-    """pis3r with the weight-free classical backend on CPU; with ``geometry`` one canvas per
-    camera from one reconstruction (``ref="all"``)."""
+    """pis3r with its default :class:`~pis3r.options.StitchOptions`, except the weight-free
+    classical backend on CPU (what every user has); with ``geometry`` one canvas per camera
+    from one reconstruction (``ref="all"``)."""
     from pis3r.api import stitch
+    from pis3r.options import StitchOptions
 
+    options = StitchOptions(backend="classical", device="cpu", ref="all" if geometry else 0)
     start = time.perf_counter()
-    result = stitch([reference, target], ref="all" if geometry else 0, backend="classical", device="cpu")
+    result = stitch([reference, target], options)
     seconds = time.perf_counter() - start
     results = result if geometry else [result]
     canvases = [Canvas(r.image, r.mask > 0, tuple(int(v) for v in r.ref_offset)) for r in results]

@@ -31,7 +31,7 @@ def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet
     """Evaluate stitchers on DATA: a `pis3r synth` output or a folder of pair folders
     (ref.*, tgt.*; the crop protocol makes their ground truth). Finished case x method
     results are cached in OUTDIR and skipped when the command is run again."""
-    from pis3r.eval.protocol import discover_cases
+    from pis3r.eval.cases import discover_cases
     from pis3r.eval.report import write_report
     from pis3r.eval.runner import CASE_TASK, EvalConfig, run_evaluation
 

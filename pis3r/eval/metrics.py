@@ -16,6 +16,7 @@ import math
 import numpy as np
 from skimage.metrics import structural_similarity
 
+from pis3r.camera import sampson_distance
 from pis3r.errors import InputError, Pis3rError
 from pis3r.eval.niqe import niqe_rgb
 
@@ -128,8 +129,9 @@ def sampson_error(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.nda
     ``x_a, x_b`` the homogeneous pixel coordinates of ``pts_a[i], pts_b[i]`` (``(N, 2)``, OpenCV
     pixel centres) and ``F`` ``(3, 3)`` mapping points of image a to epipolar lines of image b
     (``x_b^T F x_a = 0``). The paper's table labels this squared distance "pixel"; it is the
-    first-order approximation of the squared geometric reprojection distance, so px². Returns
-    ``(N,)`` float64; NaN where both epipolar lines are degenerate (the points are the epipoles).
+    first-order approximation of the squared geometric reprojection distance, so px²: the square
+    of :func:`pis3r.camera.sampson_distance`. Returns ``(N,)`` float64; NaN where both epipolar
+    lines are degenerate (the points are the epipoles).
     """
     F = np.asarray(F, np.float64)
     pts_a = np.asarray(pts_a, np.float64)
@@ -138,14 +140,7 @@ def sampson_error(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.nda
         raise InputError(
             f"sampson_error: need F (3, 3) and two (N, 2) point arrays, got {F.shape}, {pts_a.shape}, {pts_b.shape}"
         )
-    x_a = np.column_stack([pts_a, np.ones(len(pts_a))])
-    x_b = np.column_stack([pts_b, np.ones(len(pts_b))])
-    lines_b = x_a @ F.T  # F x_a: epipolar lines in image b
-    lines_a = x_b @ F  # F^T x_b: epipolar lines in image a
-    numerator = np.einsum("ij,ij->i", x_b, lines_b) ** 2
-    denominator = lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(denominator > 0, numerator / denominator, np.nan)
+    return sampson_distance(F, pts_a, pts_b) ** 2
 
 
 def coverage(filled_mask: np.ndarray, gt_region_mask: np.ndarray) -> float:

@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pis3r.eval.protocol import PARALLAX_CLASSES, UNKNOWN_CLASS
+from pis3r.eval.cases import PARALLAX_CLASSES, UNKNOWN_CLASS
 from pis3r.eval.runner import CASE_TASK, preview_path
 from pis3r.io import read_image, to_uint8, write_bytes, write_png
 

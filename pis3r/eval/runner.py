@@ -15,7 +15,6 @@ parallax level estimated from the inputs and the previews of GT, reference and t
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 from dataclasses import dataclass
@@ -24,21 +23,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pis3r.cluster import dask_client
 from pis3r.errors import InputError, Pis3rError
 from pis3r.eval import metrics
 from pis3r.eval.baselines import CAMERA_METHODS, METHODS, MethodFailure, run_method
-from pis3r.eval.protocol import (
-    Case,
-    CaseSpec,
-    exact_homography,
-    load_case,
-    place,
-    pose_error,
-    register_and_score,
-    score_failure,
-    score_geometry,
-    score_placed,
-)
+from pis3r.eval.cases import CaseSpec, EvalCase, load_case
+from pis3r.eval.geometry import pose_error, score_geometry
+from pis3r.eval.registration import exact_homography, place
+from pis3r.eval.scoring import register_and_score, score_failure, score_placed
 from pis3r.io import encode_png, write_bytes, write_json
 
 CASE_TASK = "_case"
@@ -86,7 +78,7 @@ def _preview(image: np.ndarray) -> bytes:
     return encode_png(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
 
 
-def _load(spec: CaseSpec, config: EvalConfig) -> Case:
+def _load(spec: CaseSpec, config: EvalConfig) -> EvalCase:
     # Without ground truth the methods get photo A whole (crop 1 keeps it all).
     return load_case(spec, config.crop if config.ground_truth else 1.0)
 
@@ -104,7 +96,7 @@ def evaluate_case_info(spec: CaseSpec, config: EvalConfig) -> TaskResult:
     case = _load(spec, config)
     try:
         estimate = estimate_parallax(case.reference, case.target)
-        level, estimated_class = estimate.level, estimate.cls
+        level, estimated_class = estimate.level, estimate.parallax_class
     except Pis3rError:
         level, estimated_class = math.nan, "unknown"
     row = {**_case_fields(spec), "method": CASE_TASK, "estimated_parallax_level": level,
@@ -221,7 +213,7 @@ def run_evaluation(
     ``workers``: processes of the local dask cluster (on 127.0.0.1); ``scheduler``: address
     of an existing cluster instead. Returns all rows (cached and new) and one line per task
     that raised an error of the evaluation itself."""
-    from dask.distributed import Client, LocalCluster, as_completed
+    from distributed import as_completed
     from tqdm import tqdm
 
     outdir = Path(outdir)
@@ -237,11 +229,7 @@ def run_evaluation(
     ]
     errors = []
     if todo:
-        cluster = None if scheduler else LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
-            silence_logs=logging.ERROR,  # the progress bar says what happens; worker chatter does not
-        )
-        with Client(scheduler or cluster) as client:
+        with dask_client(workers, scheduler) as client:
             futures = {client.submit(_task, spec, method, config, pure=False): (spec.name, method)
                        for spec, method in todo}
             with tqdm(total=len(futures), desc="pis3r eval", unit="run", disable=not progress) as bar:
@@ -252,6 +240,4 @@ def run_evaluation(
                     except Exception as exc:  # an evaluation bug must not lose the other results
                         errors.append(f"{case_name} / {method}: {exc.__class__.__name__}: {exc}")
                     bar.update()
-        if cluster is not None:
-            cluster.close()
     return load_results(outdir), errors

@@ -147,7 +147,7 @@ class ClassicalReconstructor:
             raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
         # A plane seen from two places is explained by one homography too, whatever
         # its parallax level; an essential matrix is degenerate there.
-        model = "homography" if parallax.cls == "rotation" or h_inl.mean() >= PLANAR_FRACTION else "3d"
+        model = "homography" if parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION else "3d"
         reason = (
             f"one homography explains the matches (parallax level {parallax.level:.2f} %): rotation or planar scene"
             if model == "homography"

@@ -6,38 +6,21 @@ All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from pis3r.camera import intrinsics
+from pis3r.camera import intrinsics, sampson_distance
 from pis3r.features import Matches
+from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
 
+# Added to the Sampson denominator so that the pose refinement's residuals stay finite.
+SAMPSON_EPS = 1e-12
 # Fallback focal when neither the user, EXIF nor self-calibration gives one:
 # 1.2 x the longest side (about 45 deg horizontal field of view), COLMAP's prior.
 FALLBACK_FOCAL_FACTOR = 1.2
 FOCAL_RANGE = (0.3, 5.0)  # plausible focal / longest side
-
-
-@dataclass
-class TwoViewGeometry:
-    """Relative pose of view b w.r.t. view a: ``x_b = R x_a + t`` (``|t| = 1`` or 0).
-
-    ``model``: ``"3d"`` (essential matrix) or ``"homography"`` (rotation or plane:
-    ``plane_normal``/``plane_distance`` in view a's frame, ``n . X = d``).
-    ``inliers``: bool mask over the matches used.
-    """
-
-    model: str
-    R: np.ndarray
-    t: np.ndarray
-    inliers: np.ndarray
-    H: np.ndarray | None = None
-    plane_normal: np.ndarray | None = None
-    reason: str = ""
 
 
 def _pixel_scale(width: int, height: int) -> float:
@@ -49,25 +32,14 @@ def fundamental(matches: Matches, width: int, height: int) -> tuple[np.ndarray |
     """MAGSAC++ fundamental matrix ``(3, 3)`` (or None) and its inlier mask ``(N,)``."""
     if len(matches) < 8:
         return None, np.zeros(len(matches), bool)
-    F, mask = cv2.findFundamentalMat(
-        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 1.0 * _pixel_scale(width, height), 0.9999, 20000
-    )
-    if F is None or F.shape != (3, 3):
-        return None, np.zeros(len(matches), bool)
-    return F, mask.ravel().astype(bool)
+    return fit_fundamental(matches.pts_a, matches.pts_b, 1.0 * _pixel_scale(width, height), RECONSTRUCTION)
 
 
 def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
     """MAGSAC++ homography a -> b ``(3, 3)`` (or None) and its inlier mask."""
     if len(matches) < 4:
         return None, np.zeros(len(matches), bool)
-    H, mask = cv2.findHomography(
-        matches.pts_a, matches.pts_b, cv2.USAC_MAGSAC, 2.0 * _pixel_scale(width, height),
-        maxIters=20000, confidence=0.9999,
-    )
-    if H is None:
-        return None, np.zeros(len(matches), bool)
-    return H, mask.ravel().astype(bool)
+    return fit_homography(matches.pts_a, matches.pts_b, 2.0 * _pixel_scale(width, height), RECONSTRUCTION)
 
 
 def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
@@ -86,8 +58,8 @@ def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
         K = intrinsics(f, width, height)
         na, nb = _normalised(K, matches.pts_a), _normalised(K, matches.pts_b)
         threshold = 1.0 * _pixel_scale(width, height) / f
-        E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.999, threshold, 5000)
-        counts.append(0 if E is None else int(mask.sum()))
+        _, inliers = fit_essential(na, nb, threshold, FOCAL_SCAN)
+        counts.append(int(inliers.sum()))
     ranked = [float(scan[i]) for i in np.argsort(-np.array(counts), kind="stable")[:3]]
     return ranked + [FALLBACK_FOCAL_FACTOR * side]
 
@@ -125,26 +97,15 @@ def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: in
     """
     na, nb = _normalised(K_a, matches.pts_a), _normalised(K_b, matches.pts_b)
     threshold = 1.0 * _pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
-    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_MAGSAC, 0.9999, threshold, 20000)
-    if E is None or E.shape != (3, 3):
+    E, inliers = fit_essential(na, nb, threshold, RECONSTRUCTION)
+    if E is None:
         return None
-    inliers = mask.ravel().astype(bool)
     _, R, t, pose_mask = cv2.recoverPose(E, na[inliers], nb[inliers], np.eye(3))
     good = np.zeros(len(matches), bool)
     good[np.flatnonzero(inliers)[pose_mask.ravel() > 0]] = True
     if good.sum() < 8:
         return None
     return R, t.ravel() / np.linalg.norm(t), good
-
-
-def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ha = np.hstack([a, np.ones((len(a), 1))])
-    hb = np.hstack([b, np.ones((len(b), 1))])
-    Fa = ha @ F.T
-    Ftb = hb @ F
-    num = np.sum(hb * Fa, axis=1)
-    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2) + 1e-12
-    return num / den
 
 
 def _skew(t: np.ndarray) -> np.ndarray:
@@ -190,7 +151,7 @@ def refine_pose(
     def residuals(p):
         Rm, tv, Ka, Kb = unpack(p)
         F = np.linalg.inv(Kb).T @ _skew(tv) @ Rm @ np.linalg.inv(Ka)
-        sampson = _sampson(F, matches.pts_a, matches.pts_b)
+        sampson = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS)
         if not refine_focal:
             return sampson
         return np.append(sampson, 3.0 * scale * p[5:])
@@ -204,7 +165,7 @@ def refine_pose(
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
     _, Rc, tc, _ = cv2.recoverPose(E, na, nb, np.eye(3))
     F = np.linalg.inv(Kb).T @ E @ np.linalg.inv(Ka)
-    r = _sampson(F, matches.pts_a, matches.pts_b) / scale
+    r = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale
     cost = float(np.sum(2.0 * (np.sqrt(1.0 + r * r) - 1.0)))
     return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, cost
 

@@ -5,9 +5,10 @@ rendered headless with moderngl + EGL as exact OpenCV pinhole cameras (:mod:`.re
 :mod:`.cases` draws reference / target / wide ground-truth views per parallax class.
 """
 
-from pis3r.synth.cases import CLASSES, Case, CaseCameras, ParallaxLevel, demo_pair, make_case, write_case
-from pis3r.synth.scenes import Scene, make_scene
+from pis3r.synth.cases import CLASSES, CaseCameras, ParallaxLevel, SynthCase, demo_pair, make_case, write_case
+from pis3r.synth.scenes import SynthScene, make_scene
 
 __all__ = [
-    "CLASSES", "Case", "CaseCameras", "ParallaxLevel", "Scene", "demo_pair", "make_case", "make_scene", "write_case",
+    "CLASSES", "CaseCameras", "ParallaxLevel", "SynthCase", "SynthScene", "demo_pair", "make_case", "make_scene",
+    "write_case",
 ]

@@ -40,11 +40,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pis3r.camera import Camera, intrinsics, relative_pose
+from pis3r.camera import Camera, intrinsics, rotation_angle_deg, rotation_from_angles, transfer
 from pis3r.errors import Pis3rError
 from pis3r.io import write_bytes, write_json, write_png
 from pis3r.synth.render import NEAR, render, render_depth
-from pis3r.synth.scenes import Scene, Seed, demo_scene, make_scene
+from pis3r.synth.scenes import Seed, SynthScene, demo_scene, make_scene
 
 CLASSES = ("rotation", "slight", "large")
 BASELINE_RATIO = {"rotation": (0.0, 0.0), "slight": (0.005, 0.02), "large": (0.25, 0.8)}
@@ -94,7 +94,7 @@ class ParallaxLevel:
 
 
 @dataclass
-class Case:
+class SynthCase:
     """One stitching case. Images ``(h, w, 3)`` float32 in [0, 1]; depths ``(h, w)``
     float32 camera z. ``gt``/``gt_depth`` are on the GT canvas, ``ref``/``gt_depth_ref``
     its centre crop, ``tgt``/``gt_depth_tgt`` the target's view. ``ref_in_scene``: the
@@ -114,84 +114,16 @@ class Case:
     seed: int | list[int] | None
 
 
-@dataclass(frozen=True)
-class Transfer:
-    """Where the pixels of a source depth map land in a destination camera:
-    ``uv (H, W, 2)`` destination pixels, ``z (H, W)`` destination depth, ``visible (H, W)``:
-    in front, inside the destination image (``0 <= u <= W-1``, ``0 <= v <= H-1``, so
-    bilinear sampling there is defined) and, if its depth was given, unoccluded."""
-
-    uv: np.ndarray
-    z: np.ndarray
-    visible: np.ndarray
-
-
-def bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Sample ``image (H, W[, C])`` at ``uv (N, 2)`` pixels inside ``[0, W-1] x [0, H-1]``."""
-    h, w = image.shape[:2]
-    x0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
-    y0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
-    fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-    if image.ndim == 3:
-        fx, fy = fx[:, None], fy[:, None]
-    top = image[y0, x0] * (1 - fx) + image[y0, x0 + 1] * fx
-    bottom = image[y0 + 1, x0] * (1 - fx) + image[y0 + 1, x0 + 1] * fx
-    return top * (1 - fy) + bottom * fy
-
-
-def transfer(depth: np.ndarray, source: Camera, destination: Camera,
-             destination_depth: np.ndarray | None = None, tolerance: float = 0.01) -> Transfer:
-    """Reproject a z-depth map ``(H, W)`` of ``source`` into ``destination``.
-
-    Occlusion (when ``destination_depth``, sized to ``destination``, is given) is the
-    z-buffer test of the destination view: the point's inverse depth must be within
-    ``tolerance`` (relative) of the destination's inverse depth interpolated bilinearly
-    at ``uv``. Inverse depth is affine in the image on a plane, so the test is exact on
-    surfaces seen at grazing angles and rejects points next to depth edges."""
-    R, t = relative_pose(source, destination)
-    h, w = depth.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    finite = np.isfinite(depth)
-    # destination homogeneous pixel = K_d (R z K_s^-1 [u v 1] + t) = z * A [u v 1] + K_d t
-    A = destination.K @ R @ np.linalg.inv(source.K)
-    z_src = np.where(finite, depth, 1.0)[..., None]
-    uvw = z_src * (np.stack([u, v, np.ones_like(u)], axis=-1) @ A.T) + destination.K @ t
-    z = uvw[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = uvw[..., :2] / z[..., None]
-        visible = (finite & (z > NEAR) & (uv[..., 0] >= 0) & (uv[..., 0] <= destination.width - 1)
-                   & (uv[..., 1] >= 0) & (uv[..., 1] <= destination.height - 1))
-    if destination_depth is not None:
-        inverse = 1.0 / destination_depth.astype(np.float64)  # 0 where nothing was hit
-        seen = bilinear(inverse, uv[visible])
-        visible[visible] = np.abs(seen * z[visible] - 1.0) <= tolerance
-    return Transfer(uv, z, visible)
-
-
-def rotation_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """Camera orientation (columns: camera axes in the parent frame) for yaw about y (to the
-    right), pitch about x (downwards), roll about z, in degrees, applied yaw-pitch-roll."""
-    a, b, c = np.radians([yaw, pitch, roll])
-    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(b), np.sin(b)], [0, -np.sin(b), np.cos(b)]])
-    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
-    return ry @ rx @ rz
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def in_scene_frame(camera: Camera, ref_in_scene: Camera) -> Camera:
     """A camera given in the reference frame, re-expressed in the scene frame."""
     R = camera.R @ ref_in_scene.R
     return Camera(camera.K, R, camera.R @ ref_in_scene.t + camera.t, camera.width, camera.height)
 
 
-def _reference_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tuple[int, int]) -> Camera:
+def _reference_pose(rng: np.random.Generator, scene: SynthScene, K: np.ndarray, size: tuple[int, int]) -> Camera:
     """The reference camera in the scene frame: within 1 m of ``scene.home``, yawed up to
     25 deg, pitched -5..8 deg (mostly a little down, as people hold cameras), rolled up to 3 deg."""
-    orientation = rotation_matrix(rng.uniform(-25, 25), rng.uniform(-5, 8), rng.uniform(-3, 3))
+    orientation = rotation_from_angles(rng.uniform(-25, 25), rng.uniform(-5, 8), rng.uniform(-3, 3))
     centre = scene.home + np.array([rng.uniform(-1, 1), rng.uniform(-0.3, 0.5), rng.uniform(-1, 1)])
     R = orientation.T
     return Camera(K, R, -R @ centre, *size)
@@ -201,7 +133,7 @@ def _target_pose(rng: np.random.Generator, parallax: str, near_depth: float,
                  ref: Camera) -> tuple[Camera, str]:
     """A target camera in the reference frame for a parallax class, and its motion kind."""
     while True:
-        orientation = rotation_matrix(rng.uniform(-45, 45), rng.uniform(-15, 15), rng.uniform(-10, 10))
+        orientation = rotation_from_angles(rng.uniform(-45, 45), rng.uniform(-15, 15), rng.uniform(-10, 10))
         if rotation_angle_deg(orientation) <= MAX_ROTATION_DEG:
             break
     R = orientation.T
@@ -217,7 +149,7 @@ def _target_pose(rng: np.random.Generator, parallax: str, near_depth: float,
     return Camera(ref.K, R, -R @ centre, ref.width, ref.height), motion
 
 
-def _probe(scene: Scene, camera: Camera) -> tuple[Camera, np.ndarray]:
+def _probe(scene: SynthScene, camera: Camera) -> tuple[Camera, np.ndarray]:
     """A low-resolution depth render of ``camera``: its scaled camera and depth map."""
     small = camera.scaled(PROBE_WIDTH / camera.width)
     return small, render_depth(scene, small)
@@ -231,7 +163,7 @@ def gt_canvas(ref: Camera, canvas_scale: float) -> tuple[Camera, tuple[int, int]
     return ref.shifted(mx, my, ref.width + 2 * mx, ref.height + 2 * my), (mx, my)
 
 
-def _search_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tuple[int, int],
+def _search_pose(rng: np.random.Generator, scene: SynthScene, K: np.ndarray, size: tuple[int, int],
                  parallax: str, canvas_scale: float) -> tuple[Camera, Camera, str]:
     """Draw reference (scene frame) and target (reference frame) cameras until the pair
     meets the overlap, extension and clearance rules of the module docstring."""
@@ -250,10 +182,10 @@ def _search_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tu
             tgt_probe, tgt_depth = _probe(scene, tgt_scene)
             if tgt_depth.min() < CLEARANCE_M:
                 continue
-            overlap = transfer(ref_depth, ref_probe, tgt_probe, tgt_depth).visible.mean()
+            overlap = transfer(ref_depth, ref_probe, tgt_probe, tgt_depth, near=NEAR).visible.mean()
             if not OVERLAP_RANGE[0] <= overlap <= OVERLAP_RANGE[1]:
                 continue
-            landing = transfer(tgt_depth, tgt_probe, in_scene_frame(gt, ref_scene))
+            landing = transfer(tgt_depth, tgt_probe, in_scene_frame(gt, ref_scene), near=NEAR)
             u, v = landing.uv[..., 0], landing.uv[..., 1]
             inside_ref = (u >= mx) & (u <= mx + size[0] - 1) & (v >= my) & (v <= my + size[1] - 1)
             if (landing.visible & ~inside_ref).mean() >= MIN_EXTENSION:
@@ -264,7 +196,7 @@ def _search_pose(rng: np.random.Generator, scene: Scene, K: np.ndarray, size: tu
 def measure_parallax(parallax: str, motion: str, ref: Camera, tgt: Camera, depth_ref: np.ndarray,
                      depth_tgt: np.ndarray) -> ParallaxLevel:
     """The parallax level of a pair from its exact depths (definitions: module docstring)."""
-    seen = transfer(depth_ref, ref, tgt, depth_tgt)
+    seen = transfer(depth_ref, ref, tgt, depth_tgt, near=NEAR)
     co_visible = seen.visible
     baseline = float(np.linalg.norm(tgt.center - ref.center))
     R = tgt.R @ ref.R.T
@@ -277,7 +209,7 @@ def measure_parallax(parallax: str, motion: str, ref: Camera, tgt: Camera, depth
     H, _ = cv2.findHomography(pixels[sample], landed[sample], 0)
     fitted = cv2.perspectiveTransform(pixels[sample, None], H)[:, 0]
     residual = np.linalg.norm(fitted - landed[sample], axis=1)
-    outside = ~transfer(depth_tgt, tgt, ref).visible
+    outside = ~transfer(depth_tgt, tgt, ref, near=NEAR).visible
     return ParallaxLevel(
         parallax_class=parallax,
         motion=motion,
@@ -292,7 +224,7 @@ def measure_parallax(parallax: str, motion: str, ref: Camera, tgt: Camera, depth
 
 
 def make_case(seed: Seed, size: tuple[int, int] = (640, 480), parallax: str | None = None,
-              scene: Scene | None = None, canvas_scale: float = 1.6, supersample: int = 2) -> Case:
+              scene: SynthScene | None = None, canvas_scale: float = 1.6, supersample: int = 2) -> SynthCase:
     """Render one ground-truth stitching case.
 
     ``seed``: an int, a sequence of ints or a numpy Generator (drives scene, cameras,
@@ -315,7 +247,7 @@ def make_case(seed: Seed, size: tuple[int, int] = (640, 480), parallax: str | No
     wide = render(scene, in_scene_frame(gt, ref_scene), supersample)
     target = render(scene, in_scene_frame(tgt, ref_scene), supersample)
     crop = (slice(my, my + height), slice(mx, mx + width))
-    return Case(
+    return SynthCase(
         ref=wide.image[crop].copy(),
         tgt=target.image,
         gt=wide.image,
@@ -336,7 +268,7 @@ def _seed_record(seed: Seed) -> int | list[int] | None:
     return int(seed) if np.ndim(seed) == 0 else [int(s) for s in seed]
 
 
-def demo_pair(size: tuple[int, int] = (480, 360), seed: int = 0) -> Case:
+def demo_pair(size: tuple[int, int] = (480, 360), seed: int = 0) -> SynthCase:
     """A small very-large-parallax case: photo panels at ~3, 7 and 16 m and two boxes
     in front of a far backdrop (see :func:`pis3r.synth.scenes.demo_scene`)."""
     return make_case(seed, size, "large", scene=demo_scene(seed))
@@ -348,7 +280,7 @@ def _npy_bytes(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def write_case(case: Case, directory: str | Path) -> None:
+def write_case(case: SynthCase, directory: str | Path) -> None:
     """Write ``ref.png, tgt.png, gt.png, cameras.json, gt_depth_ref.npy, gt_depth_tgt.npy,
     case.json`` into ``directory`` (each file atomically)."""
     out = Path(directory)

@@ -28,7 +28,7 @@ import numpy as np
 
 from pis3r.camera import Camera
 from pis3r.errors import Pis3rError
-from pis3r.synth.scenes import Scene
+from pis3r.synth.scenes import SynthScene
 
 NEAR, FAR = 0.05, 5000.0  # metres; the backdrop is at most ~400 m from any camera
 # Real lenses do not resolve up to the pixel Nyquist limit; this slight blur makes the
@@ -133,7 +133,7 @@ def _program():
 class _Uploaded:
     """A scene's vertex buffer and texture array on the GL context."""
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: SynthScene) -> None:
         import moderngl
 
         ctx = gl_context()
@@ -162,7 +162,7 @@ _upload: tuple[weakref.ref, _Uploaded] | None = None  # the last scene rendered,
 _targets: dict[tuple[int, int], object] = {}
 
 
-def _uploaded(scene: Scene) -> _Uploaded:
+def _uploaded(scene: SynthScene) -> _Uploaded:
     """The GL resources of ``scene``, uploading it (and dropping the previous one) if needed."""
     global _upload
     if _upload is None or _upload[0]() is not scene:
@@ -186,7 +186,7 @@ def _target(width: int, height: int):
     return _targets[(width, height)]
 
 
-def _draw(scene: Scene, camera: Camera, textured: bool):
+def _draw(scene: SynthScene, camera: Camera, textured: bool):
     """Rasterise ``scene`` for ``camera`` (one sample per pixel centre); the framebuffer."""
     uploaded = _uploaded(scene)
     fbo = _target(camera.width, camera.height)
@@ -201,14 +201,14 @@ def _draw(scene: Scene, camera: Camera, textured: bool):
     return fbo
 
 
-def render_depth(scene: Scene, camera: Camera) -> np.ndarray:
+def render_depth(scene: SynthScene, camera: Camera) -> np.ndarray:
     """Camera-frame z ``(H, W)`` float32 at each pixel centre, ``inf`` where nothing is hit."""
     fbo = _draw(scene, camera, textured=False)
     depth = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
     return np.where(depth > 0, depth, np.inf).astype(np.float32).reshape(camera.height, camera.width)
 
 
-def render_colour(scene: Scene, camera: Camera) -> np.ndarray:
+def render_colour(scene: SynthScene, camera: Camera) -> np.ndarray:
     """RGB ``(H, W, 3)`` float32 in [0, 1], one sample at each pixel centre (aliased)."""
     fbo = _draw(scene, camera, textured=True)
     colour = np.frombuffer(fbo.read(components=3, attachment=0, dtype="f4"), np.float32)
@@ -221,7 +221,7 @@ def area_downsample(image: np.ndarray, factor: int) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)  # exact block mean for integer factors
 
 
-def render(scene: Scene, camera: Camera, supersample: int = 2, blur: float = LENS_BLUR_PX) -> Rendering:
+def render(scene: SynthScene, camera: Camera, supersample: int = 2, blur: float = LENS_BLUR_PX) -> Rendering:
     """Photo-like colour and exact per-pixel-centre z of ``scene`` seen by ``camera``.
 
     Colour: ``supersample**2`` samples per pixel, box-filtered (the sensor pixel), then a

@@ -3,7 +3,7 @@
 Frame: the scene's world frame has the OpenCV orientation of an upright camera:
 x right, **y down**, z forward. The ground is the plane ``y = 0``; "up" is ``-y``;
 heights are therefore negative y. Objects stand in front of (``+z``) a nominal
-viewpoint ``Scene.home`` above the origin, inside a far cylindrical backdrop with a
+viewpoint ``SynthScene.home`` above the origin, inside a far cylindrical backdrop with a
 sky cap, so every viewing ray hits something (no empty pixels) and the depth range
 is far beyond 10x (objects from ~3 m, backdrop at 120-300 m).
 
@@ -40,7 +40,7 @@ class Mesh:
 
     ``positions (3T, 3)`` float32 world points; ``uv (3T, 2)`` float32 texture
     coordinates, 1.0 = one texture width, repeated mirrored beyond [0, 1];
-    ``texture_id (T,)`` int32 layer of ``Scene.textures``; ``color (T, 3)`` float32
+    ``texture_id (T,)`` int32 layer of ``SynthScene.textures``; ``color (T, 3)`` float32
     RGB multiplier (tint times shading).
     """
 
@@ -75,7 +75,7 @@ class Mesh:
 
 
 @dataclass(eq=False)
-class Scene:
+class SynthScene:
     """A renderable scene. ``mesh``: all geometry; ``textures (L, S, S, 3)`` uint8 layers
     with their ``texture_names``; ``home (3,)``: nominal camera centre (scene frame)
     looking down ``+z``, around which the case generator places reference cameras."""
@@ -183,13 +183,13 @@ class _Palette:
             tint = np.ones(3)
         return layer, tint
 
-    def scene(self, parts: list[Mesh], unlit: list[Mesh], home: np.ndarray) -> Scene:
+    def scene(self, parts: list[Mesh], unlit: list[Mesh], home: np.ndarray) -> SynthScene:
         """Assemble: ``parts`` get the sun's shading, ``unlit`` (backdrop, sky) keep their colour."""
         elevation, azimuth = np.radians(self.rng.uniform(25, 70)), self.rng.uniform(0, 2 * np.pi)
         sun = np.array([np.cos(elevation) * np.cos(azimuth), -np.sin(elevation), np.cos(elevation) * np.sin(azimuth)])
         mesh = Mesh.concat([Mesh.concat(parts).lit(sun)] + unlit)
         textures = np.stack([t.pixels for t in self.layers])
-        return Scene(mesh, textures, tuple(t.name for t in self.layers), home)
+        return SynthScene(mesh, textures, tuple(t.name for t in self.layers), home)
 
 
 def _surroundings(palette: _Palette, rng: np.random.Generator) -> tuple[Mesh, list[Mesh]]:
@@ -217,7 +217,7 @@ def _placement(rng: np.random.Generator, near: float, far: float, extent: float,
     return (distance * np.sin(azimuth), distance * np.cos(azimuth)), yaw
 
 
-def make_scene(seed: Seed, extra_textures: tuple[Texture, ...] = ()) -> Scene:
+def make_scene(seed: Seed, extra_textures: tuple[Texture, ...] = ()) -> SynthScene:
     """A random outdoor-like scene: textured ground, 2-4 walls, 5-10 boxes, 3-8 poles,
     0-2 stairs, 1-3 billboards from 3 to about 50 m, some surfaces almost textureless,
     inside a far backdrop and sky (see module docstring for the frame). ``seed``: int,
@@ -266,7 +266,7 @@ def make_scene(seed: Seed, extra_textures: tuple[Texture, ...] = ()) -> Scene:
     return palette.scene(parts, unlit, home=np.array([0.0, -1.6, 0.0]))
 
 
-def demo_scene(seed: Seed) -> Scene:
+def demo_scene(seed: Seed) -> SynthScene:
     """A small scene for demos and analytic tests: three photo panels facing the viewpoint
     at about 3, 7 and 16 m, two boxes, textured ground, far backdrop and sky."""
     rng = np.random.default_rng(seed)

@@ -49,7 +49,7 @@ def run_stitch_job(job: Job) -> dict:
     io.write_bytes(out / "overlay.png", io.encode_png(overlay))
     parallax = result.report["parallax"]
     return {
-        "parallax": {"class": parallax["class"], "label": parallax["label"], "level": parallax["level"]},
+        "parallax": {"parallax_class": parallax["parallax_class"], "label": parallax["label"], "level": parallax["level"]},
         "width": result.camera.width,
         "height": result.camera.height,
         "ref_offset": list(result.ref_offset),

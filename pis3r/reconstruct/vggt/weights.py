@@ -13,7 +13,7 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Iterator, Mapping
 
-from pis3r.errors import WeightsError
+from pis3r.errors import WeightsError, one_line
 
 logger = logging.getLogger(__name__)
 
@@ -66,14 +66,9 @@ def fetch_weights() -> Path:
     except Exception as exc:  # network, offline mode, disk: all end the same way for the user
         offline = " (HF_HUB_OFFLINE is set)" if constants.HF_HUB_OFFLINE else ""
         raise WeightsError(
-            f"cannot download {HF_REPO}/{HF_FILES[0]}{offline}: {_one_line(exc)}; "
+            f"cannot download {HF_REPO}/{HF_FILES[0]}{offline}: {one_line(exc, with_type=True)}; "
             f"download it where there is network and pass --weights PATH or set {WEIGHTS_ENV}"
         ) from None
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
 # -- configuration from key shapes ------------------------------------------------------
@@ -177,7 +172,7 @@ def load_vggt(path: str | os.PathLike, device: str | torch.device = "cpu") -> VG
         checkpoint = _Checkpoint(path)
     except Exception as exc:  # corrupt or foreign files fail in many library-specific ways
         raise WeightsError(
-            f"{path}: not a readable VGGT checkpoint ({_one_line(exc)}); {FETCH_HINT}"
+            f"{path}: not a readable VGGT checkpoint ({one_line(exc, with_type=True)}); {FETCH_HINT}"
         ) from None
     skipped = [k for k in checkpoint.shapes if k.startswith(TRACK_HEAD_PREFIX)]
     if skipped:
@@ -196,7 +191,7 @@ def load_vggt(path: str | os.PathLike, device: str | torch.device = "cpu") -> VG
     try:
         state = {k: t.to(device=device, dtype=torch.float32) for k, t in checkpoint.tensors(keys)}
     except Exception as exc:
-        raise WeightsError(f"{path}: cannot read its tensors ({_one_line(exc)}); {FETCH_HINT}") from None
+        raise WeightsError(f"{path}: cannot read its tensors ({one_line(exc, with_type=True)}); {FETCH_HINT}") from None
     try:
         model.load_state_dict(state, strict=True, assign=True)
     except RuntimeError as exc:
@@ -214,4 +209,4 @@ def _mismatch(model: VGGT, state: Mapping, error: RuntimeError) -> str:
             f"{len(keys)} {kind}" + (f", e.g. {', '.join(keys[:3])}" if keys else "")
             for kind, keys in (("missing", missing), ("unexpected", unexpected))
         )
-    return next((line.strip() for line in str(error).splitlines() if "mismatch" in line), _one_line(error))
+    return next((line.strip() for line in str(error).splitlines() if "mismatch" in line), one_line(error, with_type=True))

@@ -1,0 +1,97 @@
+"""pis3r.features: the one SIFT set-up reproduces each caller's own OpenCV detection and matching."""
+
+import cv2
+import numpy as np
+import pytest
+from skimage import data
+
+from pis3r.eval.apap import SIFT_MAX_FEATURES as APAP_FEATURES
+from pis3r.eval.registration import (
+    EDGE_ERODE_KERNEL_PX,
+    RATIO,
+    SIFT_MAX_FEATURES,
+    judge_features,
+    match_canvases,
+)
+from pis3r.features import detect, match, to_gray_u8
+from pis3r.io import to_uint8
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """Two overlapping float32 crops ``(200, 240, 3)`` of one photo, the second 40 px to the right."""
+    photo = data.astronaut().astype(np.float32) / 255.0
+    return photo[100:300, 100:340].copy(), photo[110:310, 140:380].copy()
+
+
+def opencv_sift(gray: np.ndarray, mask: np.ndarray | None = None, **options):
+    keypoints, descriptors = cv2.SIFT_create(**options).detectAndCompute(gray, mask)
+    return np.array([kp.pt for kp in keypoints], np.float64), descriptors
+
+
+def test_default_detection_is_rootsift_at_low_contrast(pair):
+    image = pair[0]
+    features = detect(image)
+    points, descriptors = opencv_sift(to_gray_u8(image), nfeatures=8000, contrastThreshold=0.02)
+    root = np.sqrt(descriptors / (np.abs(descriptors).sum(axis=1, keepdims=True) + 1e-7)).astype(np.float32)
+    assert len(points) > 100 and features.root_sift
+    assert np.array_equal(features.points, points) and np.array_equal(features.descriptors, root)
+    np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_detection_on_a_smaller_copy_returns_full_resolution_pixels(pair):
+    image = pair[0]
+    small = detect(image, max_side=120)  # half size
+    gray = cv2.resize(to_gray_u8(image), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    points, _ = opencv_sift(gray, nfeatures=8000, contrastThreshold=0.02)
+    assert np.array_equal(small.points, (points + 0.5) / 0.5 - 0.5)
+    # A mask is resized with the image: no keypoint outside it.
+    left = np.zeros(image.shape[:2], bool)
+    left[:, :120] = True
+    masked = detect(image, max_side=120, mask=left)
+    assert len(masked.points) > 10 and masked.points[:, 0].max() < 121
+
+
+def test_evaluation_detection_is_plain_opencv_sift_inside_the_eroded_mask(pair):
+    image = pair[0]
+    filled = np.zeros(image.shape[:2], bool)
+    filled[20:180, 30:200] = True
+    features = judge_features(image, filled)
+    kernel = np.ones((EDGE_ERODE_KERNEL_PX, EDGE_ERODE_KERNEL_PX), np.uint8)
+    eroded = cv2.erode(filled.astype(np.uint8) * 255, kernel)
+    points, descriptors = opencv_sift(cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2GRAY), eroded,
+                                      nfeatures=SIFT_MAX_FEATURES)
+    assert len(points) > 50 and not features.root_sift
+    assert np.array_equal(features.points, points) and np.array_equal(features.descriptors, descriptors)
+
+
+def test_apap_detection_is_plain_opencv_sift(pair):
+    image = pair[1]
+    features = detect(to_uint8(image), max_features=APAP_FEATURES, max_side=None, contrast_threshold=0.04,
+                      root_sift=False)
+    points, descriptors = opencv_sift(cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2GRAY), nfeatures=APAP_FEATURES)
+    assert np.array_equal(features.points, points) and np.array_equal(features.descriptors, descriptors)
+
+
+def test_one_way_matching_is_opencvs_ratio_test(pair):
+    everywhere = np.ones(pair[0].shape[:2], bool)
+    a, b = judge_features(pair[0], everywhere), judge_features(pair[1], everywhere)
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+    good = [m for m, second in knn if m.distance < RATIO * second.distance]
+    pts_a, pts_b = match_canvases(pair[0], everywhere, pair[1], everywhere)
+    assert len(good) > 50 and pts_a.dtype == np.float32
+    assert np.array_equal(pts_a, a.points[[m.queryIdx for m in good]].astype(np.float32))
+    assert np.array_equal(pts_b, b.points[[m.trainIdx for m in good]].astype(np.float32))
+    # The crops are 40 px and 10 px apart: most matches say so.
+    assert np.median(pts_a - pts_b, axis=0) == pytest.approx([40, 10], abs=0.5)
+
+
+def test_mutual_matching_keeps_a_subset_of_one_way_matches_and_needs_rootsift(pair):
+    a, b = detect(pair[0]), detect(pair[1])
+    mutual, one_way = match(a, b), match(a, b, mutual=False)
+    assert 50 < len(mutual) <= len(one_way)
+    assert {tuple(p) for p in mutual.pts_a} <= {tuple(p) for p in one_way.pts_a}
+    plain = detect(pair[1], root_sift=False)
+    with pytest.raises(ValueError, match="RootSIFT"):
+        match(a, plain)
+    assert len(match(a, detect(np.zeros((50, 50, 3), np.float32)))) == 0  # nothing to match
