@@ -14,12 +14,16 @@ from contextlib import contextmanager
 
 
 class StageTimer:
-    """Times named stages; prints ``[pis3r] stage ... 0.42 s`` unless ``quiet``."""
+    """Times named stages; prints ``[pis3r] stage ... 0.42 s`` unless ``quiet``.
+
+    A line said while a stage runs (a warning) goes on a line of its own; the stage then
+    ends with ``[pis3r] stage done 0.42 s``."""
 
     def __init__(self, quiet: bool = False, prefix: str = "") -> None:
         self.quiet = quiet
         self.prefix = prefix
         self.seconds: dict[str, float] = {}
+        self._open_line = False
 
     def child(self, prefix: str) -> "StageTimer":
         """A timer for sub-stages, printing with ``prefix`` and this timer's quietness."""
@@ -27,20 +31,24 @@ class StageTimer:
 
     def say(self, message: str) -> None:
         if not self.quiet:
-            print(f"[pis3r] {self.prefix}{message}", file=sys.stderr, flush=True)
+            print(("\n" if self._open_line else "") + f"[pis3r] {self.prefix}{message}", file=sys.stderr, flush=True)
+            self._open_line = False
 
     @contextmanager
     def stage(self, name: str):
         start = time.perf_counter()
         if not self.quiet:
             print(f"[pis3r] {self.prefix}{name} ...", end="", file=sys.stderr, flush=True)
+            self._open_line = True
         try:
             yield
         finally:
             elapsed = time.perf_counter() - start
             self.seconds[name] = self.seconds.get(name, 0.0) + elapsed
             if not self.quiet:
-                print(f" {elapsed:.2f} s", file=sys.stderr, flush=True)
+                ending = f" {elapsed:.2f} s" if self._open_line else f"[pis3r] {self.prefix}{name} done {elapsed:.2f} s"
+                print(ending, file=sys.stderr, flush=True)
+                self._open_line = False
 
 
 class WarningLog:

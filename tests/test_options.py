@@ -151,3 +151,20 @@ def test_cli_turns_any_python_warning_into_one_line(monkeypatch):
         cli.main.commands.pop("warn-once")
     assert result.exit_code == 0
     assert result.stderr.splitlines() == ["pis3r: warning: UserWarning: something odd"]
+
+
+def test_a_warning_during_a_stage_gets_its_own_line(capsys):
+    from pis3r.progress import StageTimer, WarningLog
+
+    timer = StageTimer()
+    log = WarningLog(timer)
+    with timer.stage("read images"):
+        log.add("a.jpg: downscaled")
+        log.add("a.jpg: downscaled")
+    with timer.stage("blend"):
+        pass
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "[pis3r] read images ..."
+    assert lines[1] == "[pis3r] warning: a.jpg: downscaled"
+    assert lines[2].startswith("[pis3r] read images done ") and lines[3].startswith("[pis3r] blend ... ")
+    assert len(lines) == 4 and log.lines == ["a.jpg: downscaled"]

@@ -40,8 +40,8 @@ class MethodFailure(Pis3rError):
 
 
 @dataclass(frozen=True)
-class Canvas:
-    """A stitched canvas: ``image`` ``(h, w, 3)`` float32 RGB in [0, 1]; ``filled`` ``(h, w)``
+class MethodCanvas:
+    """A peer's stitched canvas: ``image`` ``(h, w, 3)`` float32 RGB in [0, 1]; ``filled`` ``(h, w)``
     bool (pixels the method produced); ``offset`` ``(x, y)``: canvas pixel of the pixel
     (0, 0) of the camera it is seen from, when the method knows it exactly, else ``None``."""
 
@@ -57,9 +57,9 @@ class MethodOutput:
     ``(3, 4)`` ``[R | t]`` (reference camera -> target camera) as the method reconstructed
     it (``None`` otherwise). ``seconds``: wall time of the method itself."""
 
-    canvas: Canvas
+    canvas: MethodCanvas
     seconds: float
-    target_canvas: Canvas | None = None
+    target_canvas: MethodCanvas | None = None
     relative_pose: np.ndarray | None = None
 
 
@@ -67,10 +67,10 @@ def _bgr(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(to_uint8(image), cv2.COLOR_RGB2BGR)
 
 
-def _from_bgr_canvas(canvas: np.ndarray) -> Canvas:
+def _from_bgr_canvas(canvas: np.ndarray) -> MethodCanvas:
     """OpenCV stitchers paint the background black and export no mask: filled = non-black."""
     image = cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-    return Canvas(image, canvas.max(axis=2) > 0, None)
+    return MethodCanvas(image, canvas.max(axis=2) > 0, None)
 
 
 def stitch_pis3r(reference: np.ndarray, target: np.ndarray, geometry: bool) -> MethodOutput:
@@ -85,7 +85,7 @@ def stitch_pis3r(reference: np.ndarray, target: np.ndarray, geometry: bool) -> M
     result = stitch([reference, target], options)
     seconds = time.perf_counter() - start
     results = result if geometry else [result]
-    canvases = [Canvas(r.image, r.mask > 0, tuple(int(v) for v in r.ref_offset)) for r in results]
+    canvases = [MethodCanvas(r.image, r.mask > 0, tuple(int(v) for v in r.ref_offset)) for r in results]
     if not geometry:
         return MethodOutput(canvases[0], seconds)
     camera = results[0].scene.views[1].camera
@@ -124,7 +124,7 @@ def stitch_apap(reference: np.ndarray, target: np.ndarray, geometry: bool) -> Me
 
     start = time.perf_counter()
     views = [apap_stitch(reference, target)] + ([apap_stitch(target, reference)] if geometry else [])
-    canvases = [Canvas(v.image, v.filled, v.ref_offset) for v in views]
+    canvases = [MethodCanvas(v.image, v.filled, v.ref_offset) for v in views]
     return MethodOutput(canvases[0], time.perf_counter() - start, canvases[1] if geometry else None)
 
 
@@ -265,11 +265,11 @@ def _pack(output: MethodOutput) -> dict:
 
 
 def _unpack(arrays: dict) -> MethodOutput:
-    def canvas(prefix: str) -> Canvas | None:
+    def canvas(prefix: str) -> MethodCanvas | None:
         if f"{prefix}_image" not in arrays:
             return None
         offset = arrays[f"{prefix}_offset"]
-        return Canvas(arrays[f"{prefix}_image"], arrays[f"{prefix}_filled"],
+        return MethodCanvas(arrays[f"{prefix}_image"], arrays[f"{prefix}_filled"],
                       tuple(int(v) for v in offset) if offset.size else None)
 
     return MethodOutput(canvas("canvas"), float(arrays["seconds"]), canvas("target_canvas"),
