@@ -31,7 +31,9 @@ from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.refine import refine_canvas, resolve_refine
 from pis3r.result import StitchResult
 from pis3r.scene import Scene
+from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL
 from pis3r.stitch.blend import blend_reference_border
+from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.reproject import Canvas, reproject_to_canvas
@@ -66,7 +68,7 @@ def stitch(
         with timer.stage("read images"):
             photos = read_photos(images, log)
         order = reference_first(len(photos), options.ref)
-        scene, backend = reconstruct(photos, order, options, timer, log)
+        scene, backend, choice = reconstruct(photos, order, options, timer, log)
         with timer.stage("parallax"):
             parallax = scene.parallax or estimate_parallax(photos[order[0]].pixels, photos[order[1]].pixels)
         timer.say(f"parallax: {parallax.label} (level {parallax.level:.2f})")
@@ -74,7 +76,7 @@ def stitch(
         composites = [composite(scene, index, options, timer) for index in refs]
     results = [
         StitchResult(c.image, c.mask, c.canvas.camera, c.canvas.ref_offset, index, scene,
-                     build_report(scene, backend, parallax, c, log.lines, index, options))
+                     build_report(scene, backend, choice, parallax, c, log.lines, index, options))
         for index, c in zip(refs, composites)
     ]
     return results if options.ref == "all" else results[0]
@@ -108,22 +110,32 @@ def reference_first(count: int, ref: int | str) -> list[int]:
 
 
 def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTimer,
-                log: WarningLog) -> tuple[Scene, str]:
-    """Run the chosen backend on ``photos`` in ``order``; the scene comes back in input order."""
+                log: WarningLog) -> tuple[Scene, str, ModelChoice]:
+    """Choose the model on a held-back band, then run the backend on ``photos`` in ``order``;
+    the scene comes back in input order."""
     backend_options = ReconstructOptions(
-        focal=options.focal, device=options.device, weights=options.weights,
-        conf_threshold=options.conf_threshold, depth_fill=options.depth_fill,
+        focal=options.focal, device=options.device, weights=options.weights, conf_threshold=options.conf_threshold,
+        depth_fill=DEFAULT_DEPTH_FILL if options.depth_fill == "auto" else options.depth_fill,
+        model="auto" if options.model == "auto" else options.model,
     )
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))
+    ordered = [photos[i] for i in order]
+    with timer.stage("choose model"):
+        choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill)
+    if choice.chosen is not None:
+        backend_options = choice.chosen.backend_options(backend_options)
+        if choice.scores:
+            timer.say("model: " + ", ".join(f"{s.candidate.model}{'/' + s.candidate.depth_fill if s.candidate.depth_fill else ''}"
+                                            f" {s.psnr:.2f} dB" for s in choice.scores) + f" -> {choice.chosen.model}")
     with timer.stage("reconstruct"):
-        scene = create_backend(backend, backend_options).reconstruct([photos[i] for i in order])
+        scene = create_backend(backend, backend_options).reconstruct(ordered)
     scene = scene.in_input_order(order)
     for dropped in scene.dropped:
         log.add(f"dropped image {dropped.index} ({dropped.name}): {dropped.reason}")
     for line in scene.warnings:
         log.add(line)
-    return scene, backend
+    return scene, backend, choice
 
 
 @dataclass
@@ -157,13 +169,14 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
     return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds})
 
 
-def build_report(scene: Scene, backend: str, parallax: ParallaxEstimate, result: Composite,
+def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: ParallaxEstimate, result: Composite,
                  warnings: list[str], ref_index: int, options: StitchOptions) -> dict:
     """The content of ``report.json`` for the canvas of input ``ref_index``."""
     canvas, mask, total = result.canvas, result.mask, result.mask.size
     return {
         "backend": backend,
         "model": scene.model,
+        "model_choice": choice.to_dict(),
         "ref_index": ref_index,
         "parallax": parallax.to_dict(),
         "focal": {"value": scene.focal, "source": scene.focal_source},

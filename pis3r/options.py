@@ -24,10 +24,10 @@ from pis3r.device import DEFAULT_DEVICE, DEVICES
 from pis3r.errors import InvalidOptionError
 from pis3r.reconstruct.base import BACKEND_CHOICES, DEFAULT_BACKEND
 from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD
-from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL, DEPTH_FILLS
 from pis3r.refine import DEFAULT_REFINE, REFINE_METHODS
 from pis3r.refine.canvas import DEFAULT_REGION, DEFAULT_STEPS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
+from pis3r.stitch.choose import DEFAULT_DEPTH_FILL_CHOICE, DEFAULT_MODEL, DEPTH_FILL_CHOICES, MODEL_CHOICES
 from pis3r.stitch.holes import DEFAULT_HOLE_RADIUS
 from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
 
@@ -67,9 +67,13 @@ class StitchOptions:
     conf_threshold: float = _option(
         DEFAULT_CONF_THRESHOLD, "Drop points whose confidence (0..1) is below this; 0 keeps all, as the paper.",
         low=0.0, high=1.0, kind=float)
+    model: str = _option(
+        DEFAULT_MODEL, "How the other views are explained: one homography (rotation or one plane) or a 3-D "
+        "scene; auto chooses by how well each predicts a held-back band of the reference.", choices=MODEL_CHOICES)
     depth_fill: str = _option(
-        DEFAULT_DEPTH_FILL, "Classical backend: extend depth where one view sees the scene by continuing local "
-        "planes (planar) or by smooth inverse depth (harmonic).", choices=DEPTH_FILLS)
+        DEFAULT_DEPTH_FILL_CHOICE, "3-D model: extend depth where one view sees the scene by continuing local "
+        "planes (planar) or by smooth inverse depth (harmonic); auto chooses by the held-back band.",
+        choices=DEPTH_FILL_CHOICES)
     hole_radius: int = _option(
         DEFAULT_HOLE_RADIUS, "Radius (px) of the closing disk: gaps up to about twice this are inpainted.",
         low=1, high=64, kind=int)

@@ -147,12 +147,15 @@ class ClassicalReconstructor:
             raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
         # A plane seen from two places is explained by one homography too, whatever
         # its parallax level; an essential matrix is degenerate there.
-        model = "homography" if parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION else "3d"
-        reason = (
-            f"one homography explains the matches (parallax level {parallax.level:.2f} %): rotation or planar scene"
-            if model == "homography"
-            else f"parallax level {parallax.level:.2f} %: full 3-D model"
-        )
+        if self.options.model != "auto":
+            model, reason = self.options.model, f"{self.options.model} model chosen (parallax level {parallax.level:.2f} %)"
+        else:
+            model = "homography" if parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION else "3d"
+            reason = (
+                f"one homography explains the matches (parallax level {parallax.level:.2f} %): rotation or planar scene"
+                if model == "homography"
+                else f"parallax level {parallax.level:.2f} %: full 3-D model"
+            )
         fixed_focal = focal_ref is not None
         if model == "3d":
             starts = [focal_ref] if fixed_focal else geometry.focal_candidates(inliers, w, h)

@@ -9,6 +9,9 @@ from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL
 
 # Points whose confidence (0..1) is below this are dropped; 0 keeps all, as the paper does.
 DEFAULT_CONF_THRESHOLD = 0.0
+# ``auto``: the backend's own degeneracy test; ``homography`` (rotation or one plane) or
+# ``3d`` force a model where the backend has a choice (the classical one).
+RECONSTRUCT_MODELS = ("auto", "homography", "3d")
 
 
 @dataclass(frozen=True)
@@ -19,7 +22,8 @@ class ReconstructOptions:
     self-calibration); ``device``: ``"cpu"`` or ``"cuda"`` (resolved, never ``"auto"``);
     ``weights``: a weight file for learned backends; ``conf_threshold``: drop points
     whose confidence is below it; ``depth_fill``: how the classical backend fills depth
-    where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`).
+    where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`);
+    ``model``: one of :data:`RECONSTRUCT_MODELS`.
     """
 
     focal: float | None = None
@@ -27,3 +31,4 @@ class ReconstructOptions:
     weights: str | os.PathLike | None = None
     conf_threshold: float = DEFAULT_CONF_THRESHOLD
     depth_fill: str = DEFAULT_DEPTH_FILL
+    model: str = "auto"

@@ -1,0 +1,172 @@
+"""Choosing the model by evidence from the pair itself: the crop protocol turned inward.
+
+Several explanations can fit a pair: one homography (a rotation, or one plane: no focal
+needed, exact where it holds), or a 3-D scene whose depth beyond the overlap is filled one
+way or another. Thresholds on a parallax level cannot say which one predicts the unseen
+part best. The pair can: a band of the reference inside its border (``BAND_FRACTION`` of
+each side) is held back, each candidate stitches it from the inner part plus the other
+views, at a reduced working size, and is scored against the reference's true pixels there.
+The best candidate makes the real stitch; every score goes into ``report.json``.
+
+The band score is a PSNR over the whole band: pixels a candidate does not cover cost what
+guessing the band's mean colour would cost, so covering more is only rewarded when it is
+right.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pis3r.errors import Pis3rError, one_line
+from pis3r.io import Photo, downscaled
+from pis3r.reconstruct.base import create_backend
+from pis3r.reconstruct.options import ReconstructOptions
+from pis3r.reconstruct.propagate import DEPTH_FILLS
+from pis3r.stitch.holes import fill_holes
+from pis3r.stitch.reproject import reproject_to_canvas
+
+# Share of the reference's width and height held back on each side.
+BAND_FRACTION = 0.15
+# The band test runs with every photo's longest side at most this (pixels).
+BAND_WORK_SIDE = 480
+# ``auto``: the band test chooses; the others force a model (see module docstring).
+MODEL_CHOICES = ("auto", "homography", "3d")
+DEFAULT_MODEL = "auto"
+# ``auto`` lets the band test choose the depth fill of the 3-D model too.
+DEPTH_FILL_CHOICES = ("auto", *DEPTH_FILLS)
+DEFAULT_DEPTH_FILL_CHOICE = "auto"
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One explanation of the photos: ``model`` (``homography`` or ``3d``) and, for ``3d``,
+    its ``depth_fill`` (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`)."""
+
+    model: str
+    depth_fill: str | None = None
+
+    def backend_options(self, base: ReconstructOptions) -> ReconstructOptions:
+        return replace(base, model=self.model, depth_fill=self.depth_fill or base.depth_fill)
+
+    def to_dict(self) -> dict:
+        return {"model": self.model, "depth_fill": self.depth_fill}
+
+
+@dataclass(frozen=True)
+class BandScore:
+    """How well ``candidate`` predicted the held-back band: ``psnr`` (dB, over the whole
+    band), ``coverage`` (share of the band it rendered or inpainted); ``error``: why it could
+    not stitch the band (then ``psnr`` is ``-inf``)."""
+
+    candidate: Candidate
+    psnr: float
+    coverage: float
+    error: str = ""
+
+    def to_dict(self) -> dict:
+        finite = math.isfinite(self.psnr)
+        return {**self.candidate.to_dict(), "band_psnr": round(self.psnr, 3) if finite else None,
+                "band_coverage": round(self.coverage, 4), **({"error": self.error} if self.error else {})}
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """The candidate that makes the stitch, and every band score (empty when nothing was
+    to choose: a forced model, or a backend without a choice)."""
+
+    chosen: Candidate | None
+    scores: tuple[BandScore, ...] = ()
+
+    def to_dict(self) -> dict:
+        return {
+            "chosen": self.chosen.to_dict() if self.chosen else None,
+            "band_fraction": BAND_FRACTION,
+            "work_side": BAND_WORK_SIDE,
+            "candidates": [score.to_dict() for score in self.scores],
+        }
+
+
+def candidates(model: str, depth_fill: str) -> list[Candidate]:
+    """The candidates allowed by the ``--model`` and ``--depth-fill`` choices."""
+    fills = DEPTH_FILLS if depth_fill == "auto" else (depth_fill,)
+    found = [] if model == "3d" else [Candidate("homography")]
+    if model != "homography":
+        found += [Candidate("3d", fill) for fill in fills]
+    return found
+
+
+def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, model: str = DEFAULT_MODEL,
+                 depth_fill: str = DEFAULT_DEPTH_FILL_CHOICE) -> ModelChoice:
+    """Score every allowed candidate on the held-back band of ``photos[0]`` (the reference)
+    and return the best. Only the classical backend has a choice; with one candidate no band
+    test runs. If no candidate can stitch the band, ``chosen`` is None: the backend decides."""
+    allowed = candidates(model, depth_fill) if backend == "classical" else []
+    if len(allowed) <= 1:
+        return ModelChoice(allowed[0] if allowed else None)
+    small = [_working_size(photo) for photo in photos]
+    inner, margin, band = _hold_back_band(small[0])
+    scores = tuple(_score(candidate, [inner, *small[1:]], small[0].pixels, band, margin, backend, base)
+                   for candidate in allowed)
+    best = max(scores, key=lambda score: score.psnr)
+    return ModelChoice(best.candidate if math.isfinite(best.psnr) else None, scores)
+
+
+def _working_size(photo: Photo) -> Photo:
+    factor = BAND_WORK_SIDE / max(photo.width, photo.height)
+    return downscaled(photo, factor) if factor < 1.0 else photo
+
+
+def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
+    """The inner part of ``ref`` (a photo of the same camera, principal point still centred),
+    its offset ``(x, y)`` in ``ref`` and the band ``(h, w)`` bool outside it."""
+    bx, by = round(BAND_FRACTION * ref.width), round(BAND_FRACTION * ref.height)
+    inner = Photo(np.ascontiguousarray(ref.pixels[by:ref.height - by, bx:ref.width - bx]), ref.name,
+                  ref.focal_px, ref.focal_evidence)
+    band = np.ones((ref.height, ref.width), bool)
+    band[by:ref.height - by, bx:ref.width - bx] = False
+    return inner, (bx, by), band
+
+
+def _score(candidate: Candidate, photos: list[Photo], truth: np.ndarray, band: np.ndarray,
+           margin: tuple[int, int], backend: str, base: ReconstructOptions) -> BandScore:
+    try:
+        scene = create_backend(backend, candidate.backend_options(base)).reconstruct(photos)
+    except Pis3rError as exc:
+        return BandScore(candidate, -math.inf, 0.0, one_line(exc))
+    height, width = band.shape
+    inner = photos[0]
+    # The canvas must reach the band on every side: it is the inner part grown by the band.
+    scale = max(width / inner.width, height / inner.height) + 0.01
+    canvas = reproject_to_canvas(scene, 0, scale, base.device)
+    filled = fill_holes(canvas.image, canvas.occupied)
+    x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
+    predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)
+    return BandScore(candidate, band_psnr(predicted, covered, truth, band), float(covered[band].mean()))
+
+
+def _window(image: np.ndarray, known: np.ndarray, x0: int, y0: int, width: int, height: int):
+    """``(height, width)`` window of a canvas at ``(x0, y0)``, unknown where the canvas ends."""
+    out = np.zeros((height, width, 3), np.float32)
+    inside = np.zeros((height, width), bool)
+    sx0, sy0 = max(0, x0), max(0, y0)
+    sx1, sy1 = min(image.shape[1], x0 + width), min(image.shape[0], y0 + height)
+    if sx1 > sx0 and sy1 > sy0:
+        out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = image[sy0:sy1, sx0:sx1]
+        inside[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = known[sy0:sy1, sx0:sx1]
+    return out, inside
+
+
+def band_psnr(predicted: np.ndarray, covered: np.ndarray, truth: np.ndarray, band: np.ndarray) -> float:
+    """PSNR (dB) of ``predicted`` ``(h, w, 3)`` against ``truth`` over ``band`` ``(h, w)``;
+    where ``covered`` is False a pixel costs the band's colour variance (a mean-colour guess)."""
+    true_band = truth[band]
+    if true_band.size == 0:
+        return -math.inf
+    guess_cost = float(true_band.var(axis=0).mean())
+    errors = ((predicted[band] - true_band) ** 2).mean(axis=1)
+    errors = np.where(covered[band], errors, guess_cost)
+    mse = max(float(errors.mean()), 1e-10)
+    return 10.0 * math.log10(1.0 / mse)
