@@ -55,8 +55,17 @@ class ClassicalReconstructor:
 
     name = "classical"
 
-    def __init__(self, options: ReconstructOptions) -> None:
+    def __init__(self, options: ReconstructOptions, memo: dict | None = None) -> None:
+        """``memo``: a dict shared by reconstructions of the *same* photo objects with other
+        models or depth fills (the held-back band test), so that features and dense
+        measurements, which do not depend on them, are computed once."""
         self.options = options
+        self.memo = {} if memo is None else memo
+
+    def _memoised(self, key: tuple, compute):
+        if key not in self.memo:
+            self.memo[key] = compute()
+        return self.memo[key]
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
         """Every photo registered to ``photos[0]``; with three or more photos, one that
@@ -64,7 +73,7 @@ class ClassicalReconstructor:
         The model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
-        features = [detect(p.pixels) for p in photos]
+        features = [self._memoised(("features", id(p)), lambda p=p: detect(p.pixels)) for p in photos]
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
         views, indices, dropped, warnings, first = [], [], [], [], None
@@ -244,11 +253,16 @@ class ClassicalReconstructor:
         S_a = np.diag([s_a, s_a, 1.0])
         S_b = np.diag([s_b, s_b, 1.0])
         H_work = S_b @ H @ np.linalg.inv(S_a)
-        meas_a, meas_b = measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work)
-        pts_a = (inliers.pts_a + 0.5) * s_a - 0.5
-        pts_b = (inliers.pts_b + 0.5) * s_b - 0.5
-        _add_sparse_seeds(meas_a, pts_a, pts_b, Kw_a, Kw_b, R, t)
-        _add_sparse_seeds(meas_b, pts_b, pts_a, Kw_b, Kw_a, R.T, -R.T @ t)
+
+        def measure():
+            meas_a, meas_b = measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work)
+            pts_a = (inliers.pts_a + 0.5) * s_a - 0.5
+            pts_b = (inliers.pts_b + 0.5) * s_b - 0.5
+            _add_sparse_seeds(meas_a, pts_a, pts_b, Kw_a, Kw_b, R, t)
+            _add_sparse_seeds(meas_b, pts_b, pts_a, Kw_b, Kw_a, R.T, -R.T @ t)
+            return meas_a, meas_b
+
+        meas_a, meas_b = self._memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes()), measure)
         views = []
         for photo, image, meas, K, cam_R, cam_t in (
             (ref, img_a, meas_a, K_a, np.eye(3), np.zeros(3)),

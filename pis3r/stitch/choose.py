@@ -8,9 +8,12 @@ each side) is held back, each candidate stitches it from the inner part plus the
 views, at a reduced working size, and is scored against the reference's true pixels there.
 The best candidate makes the real stitch; every score goes into ``report.json``.
 
-The band score is a PSNR over the whole band: pixels a candidate does not cover cost what
-guessing the band's mean colour would cost, so covering more is only rewarded when it is
-right.
+The band score is the mean of two PSNRs (dB): one over the part of the band that any
+candidate reaches (what no view sees says nothing about the models), where pixels a
+candidate does not cover cost what guessing the band's mean colour would cost — reach is
+rewarded only when it is right; and one over the pixels the candidate itself renders —
+what the stitched extension will be judged on. Either alone picks badly where a model
+covers little but well, or much but poorly.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 
 from pis3r.errors import Pis3rError, one_line
 from pis3r.io import Photo, downscaled
-from pis3r.reconstruct.base import create_backend
+from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.propagate import DEPTH_FILLS
 from pis3r.stitch.holes import fill_holes
@@ -101,15 +104,21 @@ def candidates(model: str, depth_fill: str) -> list[Candidate]:
 def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, model: str = DEFAULT_MODEL,
                  depth_fill: str = DEFAULT_DEPTH_FILL_CHOICE) -> ModelChoice:
     """Score every allowed candidate on the held-back band of ``photos[0]`` (the reference)
-    and return the best. Only the classical backend has a choice; with one candidate no band
-    test runs. If no candidate can stitch the band, ``chosen`` is None: the backend decides."""
+    and return the best. Only the classical backend has a choice (learned backends predict
+    one 3-D scene); with one candidate no band test runs. If no candidate can stitch the band, ``chosen`` is None: the backend decides."""
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
     small = [_working_size(photo) for photo in photos]
     inner, margin, band = _hold_back_band(small[0])
-    scores = tuple(_score(candidate, [inner, *small[1:]], small[0].pixels, band, margin, backend, base)
-                   for candidate in allowed)
+    band_photos, memo = [inner, *small[1:]], {}
+    renders = [_render_band(candidate, band_photos, band.shape, margin, base, memo) for candidate in allowed]
+    reached = band & np.any([covered for _, covered, _ in renders], axis=0)
+    scores = tuple(
+        BandScore(candidate, -math.inf, 0.0, error) if error else
+        BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
+        for candidate, (predicted, covered, error) in zip(allowed, renders)
+    )
     best = max(scores, key=lambda score: score.psnr)
     return ModelChoice(best.candidate if math.isfinite(best.psnr) else None, scores)
 
@@ -130,13 +139,16 @@ def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
     return inner, (bx, by), band
 
 
-def _score(candidate: Candidate, photos: list[Photo], truth: np.ndarray, band: np.ndarray,
-           margin: tuple[int, int], backend: str, base: ReconstructOptions) -> BandScore:
+def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, int], margin: tuple[int, int],
+                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str]:
+    """What ``candidate`` predicts on the reference's grid ``shape`` from ``photos`` (the inner
+    part first, at ``margin`` in the reference): ``(h, w, 3)`` colours, ``(h, w)`` bool covered,
+    and an error line when it cannot stitch them. ``memo`` is shared by the candidates."""
+    height, width = shape
     try:
-        scene = create_backend(backend, candidate.backend_options(base)).reconstruct(photos)
+        scene = ClassicalReconstructor(candidate.backend_options(base), memo).reconstruct(photos)
     except Pis3rError as exc:
-        return BandScore(candidate, -math.inf, 0.0, one_line(exc))
-    height, width = band.shape
+        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc)
     inner = photos[0]
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
@@ -144,7 +156,7 @@ def _score(candidate: Candidate, photos: list[Photo], truth: np.ndarray, band: n
     filled = fill_holes(canvas.image, canvas.occupied)
     x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
     predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)
-    return BandScore(candidate, band_psnr(predicted, covered, truth, band), float(covered[band].mean()))
+    return predicted, covered, ""
 
 
 def _window(image: np.ndarray, known: np.ndarray, x0: int, y0: int, width: int, height: int):
@@ -157,6 +169,15 @@ def _window(image: np.ndarray, known: np.ndarray, x0: int, y0: int, width: int, 
         out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = image[sy0:sy1, sx0:sx1]
         inside[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = known[sy0:sy1, sx0:sx1]
     return out, inside
+
+
+def band_score(predicted: np.ndarray, covered: np.ndarray, truth: np.ndarray, reached: np.ndarray) -> float:
+    """The band score (module docstring) of ``predicted`` ``(h, w, 3)`` where ``covered``
+    ``(h, w)``, on the ``reached`` ``(h, w)`` part of the band; ``-inf`` if it covers none of it."""
+    own = reached & covered
+    if not own.any():
+        return -math.inf
+    return 0.5 * (band_psnr(predicted, covered, truth, reached) + band_psnr(predicted, covered, truth, own))
 
 
 def band_psnr(predicted: np.ndarray, covered: np.ndarray, truth: np.ndarray, band: np.ndarray) -> float:

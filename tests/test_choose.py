@@ -1,0 +1,71 @@
+"""Model choice by a held-back band of the reference (pis3r.stitch.choose)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import pis3r
+from pis3r.io import Photo
+from pis3r.reconstruct.options import ReconstructOptions
+from pis3r.stitch.choose import BandScore, Candidate, band_psnr, candidates, choose_model
+
+
+def test_band_psnr_rewards_right_pixels_and_charges_uncovered_ones_a_mean_guess():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 1, (20, 30, 3)).astype(np.float32)
+    band = np.zeros((20, 30), bool)
+    band[:, :6] = True
+    everywhere = np.ones((20, 30), bool)
+    assert band_psnr(truth, everywhere, truth, band) == pytest.approx(100.0)
+    nothing = band_psnr(np.zeros_like(truth), ~everywhere, truth, band)
+    assert nothing == pytest.approx(10 * math.log10(1 / truth[band].var(axis=0).mean()), rel=1e-5)
+    wrong = band_psnr(1.0 - truth, everywhere, truth, band)
+    assert wrong < nothing < 100.0
+    half = everywhere.copy()
+    half[:10] = False
+    assert nothing < band_psnr(truth, half, truth, band) < 100.0
+
+
+def test_candidates_follow_the_model_and_depth_fill_choices():
+    assert candidates("auto", "auto") == [Candidate("homography"), Candidate("3d", "planar"),
+                                          Candidate("3d", "harmonic")]
+    assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic")]
+    assert candidates("auto", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic")]
+    assert candidates("homography", "planar") == [Candidate("homography")]
+
+
+def test_nothing_to_choose_runs_no_band_test():
+    photos = [Photo(np.zeros((8, 8, 3), np.float32), "a"), Photo(np.zeros((8, 8, 3), np.float32), "b")]
+    forced = choose_model(photos, "classical", ReconstructOptions(), model="homography")
+    assert forced.chosen == Candidate("homography") and forced.scores == ()
+    assert choose_model(photos, "vggt", ReconstructOptions()).chosen is None
+
+
+def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candidate(small_pair):
+    # Two crops of one photo: the target is exactly a shift of the reference's image plane.
+    result = pis3r.stitch(list(small_pair), backend="classical")
+    choice = result.report["model_choice"]
+    assert [(c["model"], c["depth_fill"]) for c in choice["candidates"]] == [
+        ("homography", None), ("3d", "planar"), ("3d", "harmonic")]
+    scores = [c["band_psnr"] if c["band_psnr"] is not None else -math.inf for c in choice["candidates"]]
+    best = choice["candidates"][int(np.argmax(scores))]
+    assert choice["chosen"] == {"model": best["model"], "depth_fill": best["depth_fill"]}
+    assert result.report["model"] == best["model"]
+    # A shift of the image plane is a homography: it predicts the band at least as well as
+    # the 3-D candidates, and nearly exactly.
+    assert scores[0] >= max(scores[1:]) - 0.5 and scores[0] > 25
+
+
+def test_forcing_a_model_skips_the_band_test(small_pair):
+    result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
+    assert result.report["model_choice"]["candidates"] == []
+    assert result.report["model_choice"]["chosen"] == {"model": "3d", "depth_fill": "harmonic"}
+
+
+def test_a_candidate_that_cannot_stitch_the_band_scores_minus_infinity():
+    score = BandScore(Candidate("3d", "planar"), -math.inf, 0.0, "no essential matrix")
+    assert score.to_dict() == {"model": "3d", "depth_fill": "planar", "band_psnr": None, "band_coverage": 0.0,
+                               "error": "no essential matrix"}
