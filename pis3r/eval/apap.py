@@ -6,8 +6,11 @@ Implemented from the paper's equations, vectorised over all grid cells:
   matches, ``A`` stacks two rows per match;
 - moving DLT (eq. 7-9): for each cell centre ``x*`` of a grid laid over the canvas,
   ``h* = argmin ||W* A h||`` with ``W* = diag(w_1, w_1, ..., w_N, w_N)`` and
-  ``w_i = max(exp(-||x* - x_i||^2 / sigma^2), gamma)`` (eq. 8); ``gamma`` keeps the fit
-  close to the global homography far from any match;
+  ``w_i = max(exp(-||x* - x_i|| / sigma^2), gamma)`` in reference pixels, ``sigma = 8.5``,
+  ``gamma = 0.0015``: the kernel and settings the public Python port of APAP runs with.
+  (Eq. 8 prints the distance squared; with sigma = 8.5 px that kernel falls to gamma 22 px
+  from a match and leaves the global homography almost everywhere.) ``gamma`` keeps the
+  fit close to the global homography far from any match;
 - every canvas pixel takes the homography of its cell; the target is warped onto the
   reference frame and blended with the reference by feathering (linear weights growing
   with the distance to each image's border).
@@ -23,21 +26,26 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import OPENCV_CONTRAST_THRESHOLD, detect, match
 from pis3r.io import to_uint8
-from pis3r.robust import MATCH_FILTER, fit_fundamental
+from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
 
 MIN_MATCHES = 12
 SIFT_MAX_FEATURES = 6000
 # Matches kept at most (the weighted sums cost cells x matches x 81).
 MAX_MATCHES = 3000
-# A match moving farther than this share of the image diagonal from its neighbours' median
-# motion is a mismatch.
-COHERENCE_FRACTION = 0.02
+# Moving-DLT weights (see the module docstring): bandwidth (px) and floor.
+SIGMA_PX = 8.5
+GAMMA = 0.0015
+# Mismatches are the matches no homography within this many px explains (APAP's RANSAC
+# step): loose, so that matches off the dominant plane, which the local homographies are
+# there to follow, stay.
+HOMOGRAPHY_THRESHOLD_PX = 10.0
+# Cells of the moving-DLT grid along the canvas's longer side.
+GRID_CELLS = 100
 
 
 @dataclass(frozen=True)
@@ -54,10 +62,10 @@ class ApapResult:
 
 def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
     """Plain SIFT + ratio-test matches ``(N, 2)``, ``(N, 2)`` (reference px, target px), cleaned
-    in two steps that both keep matches off any single plane (which APAP's local
-    homographies need): a MAGSAC fundamental matrix, then :func:`coherent_motion` for the
-    mismatches that happen to lie near their epipolar line (all of them, for a rotating
-    camera, whose fundamental matrix is undetermined)."""
+    as APAP does: the inliers of a robust homography with the loose threshold
+    ``HOMOGRAPHY_THRESHOLD_PX``. (A fundamental matrix is no filter here: it lets through
+    mismatches along epipolar lines, every mismatch for a rotating camera, and those pull
+    the global homography, which places the canvas, far off.)"""
     features_ref, features_tgt = (
         detect(to_uint8(image), max_features=SIFT_MAX_FEATURES, max_side=None,
                contrast_threshold=OPENCV_CONTRAST_THRESHOLD, root_sift=False)
@@ -68,27 +76,10 @@ def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8
     matches = match(features_ref, features_tgt, ratio, mutual=False)
     if len(matches) < MIN_MATCHES:
         raise NotEnoughOverlapError(f"APAP: {len(matches)} matches")
-    pts_r, pts_t = matches.pts_a, matches.pts_b
-    threshold = max(1.0, 1e-3 * float(np.hypot(*reference.shape[:2])))
-    _, keep = fit_fundamental(pts_r, pts_t, threshold, MATCH_FILTER)
-    pts_r, pts_t = pts_r[keep], pts_t[keep]
-    keep = coherent_motion(pts_r, pts_t, COHERENCE_FRACTION * float(np.hypot(*reference.shape[:2])))
+    _, keep = fit_homography(matches.pts_a, matches.pts_b, HOMOGRAPHY_THRESHOLD_PX, MATCH_FILTER)
     if keep.sum() < MIN_MATCHES:
         raise NotEnoughOverlapError(f"APAP: {int(keep.sum())} consistent matches")
-    return pts_r[keep], pts_t[keep]
-
-
-def coherent_motion(pts_ref: np.ndarray, pts_tgt: np.ndarray, tolerance: float, neighbours: int = 8) -> np.ndarray:
-    """``(N,)`` bool: matches whose displacement lies within ``tolerance`` px of the median
-    displacement of their ``neighbours`` nearest matches in the reference. Image motion is
-    smooth except at depth edges, so a mismatch stands out from its neighbourhood."""
-    if len(pts_ref) <= neighbours:
-        return np.ones(len(pts_ref), bool)
-    motion = pts_tgt - pts_ref
-    # The nearest point of each query is the match itself: skip it.
-    _, nearest = cKDTree(pts_ref).query(pts_ref, k=neighbours + 1)
-    expected = np.median(motion[nearest[:, 1:]], axis=1)
-    return np.linalg.norm(motion - expected, axis=1) <= tolerance
+    return matches.pts_a[keep], matches.pts_b[keep]
 
 
 def hartley_normalisation(points: np.ndarray) -> np.ndarray:
@@ -119,7 +110,8 @@ def moving_dlt(
     pts_ref: np.ndarray, pts_tgt: np.ndarray, centres: np.ndarray, sigma: float, gamma: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Local homographies (reference px -> target px) ``(C, 3, 3)`` at ``centres`` ``(C, 2)``
-    (reference px) and the global one ``(3, 3)``, from matches ``(N, 2)``, ``(N, 2)``."""
+    (reference px) and the global one ``(3, 3)``, from matches ``(N, 2)``, ``(N, 2)``;
+    ``sigma`` (px) and ``gamma`` as in the module docstring."""
     T_ref, T_tgt = hartley_normalisation(pts_ref), hartley_normalisation(pts_tgt)
     src = pts_ref @ T_ref[:2, :2].T + T_ref[:2, 2]
     dst = pts_tgt @ T_tgt[:2, :2].T + T_tgt[:2, 2]
@@ -131,8 +123,8 @@ def moving_dlt(
         return H / H[:, 2:3, 2:3]
 
     global_h = to_pixels(smallest_eigenvectors(blocks.sum(axis=0).reshape(1, 9, 9)))[0]
-    d2 = ((centres[:, None, :] - pts_ref[None, :, :]) ** 2).sum(axis=2)
-    weights = np.maximum(np.exp(-d2 / sigma**2), gamma)
+    distance = np.linalg.norm(centres[:, None, :] - pts_ref[None, :, :], axis=2)
+    weights = np.maximum(np.exp(-distance / sigma**2), gamma)
     # ||W A h||^2 weights each match's two rows by w_i^2.
     local = smallest_eigenvectors((weights**2 @ blocks).reshape(-1, 9, 9))
     return to_pixels(local), global_h
@@ -163,22 +155,22 @@ def feather(valid: np.ndarray) -> np.ndarray:
 def apap_stitch(
     reference: np.ndarray,
     target: np.ndarray,
-    grid: int = 100,
-    sigma_fraction: float = 0.1,
-    gamma: float = 0.05,
+    grid: int = GRID_CELLS,
+    sigma: float = SIGMA_PX,
+    gamma: float = GAMMA,
 ) -> ApapResult:
     """Warp ``target`` ``(h2, w2, 3)`` onto the frame of ``reference`` ``(h, w, 3)`` with
     moving DLT and feather-blend the two.
 
-    ``grid``: cells along the canvas's longer side. ``sigma_fraction``: the Gaussian's
-    ``sigma`` as a fraction of the reference's longer side. ``gamma``: weight floor.
+    ``grid``: cells along the canvas's longer side. ``sigma`` (reference px), ``gamma``: the
+    moving-DLT weights (module docstring). Both images at their own size: the canvas is in
+    reference pixels, and so are ``sigma`` and the cells.
     Raises :class:`NotEnoughOverlapError` when the pair has too few consistent matches."""
     pts_ref, pts_tgt = match_features(reference, target)
     if len(pts_ref) > MAX_MATCHES:
         keep = np.random.default_rng(0).choice(len(pts_ref), MAX_MATCHES, replace=False)
         pts_ref, pts_tgt = pts_ref[keep], pts_tgt[keep]
     h, w = reference.shape[:2]
-    sigma = sigma_fraction * max(h, w)
     _, global_h = moving_dlt(pts_ref, pts_tgt, np.zeros((0, 2)), sigma, gamma)
     x0, y0, width, height = canvas_box((h, w), target.shape[:2], global_h)
 

@@ -32,6 +32,7 @@ def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet
     (ref.*, tgt.*; the crop protocol makes their ground truth). Finished case x method
     results are cached in OUTDIR and skipped when the command is run again."""
     from pis3r.eval.cases import discover_cases
+    from pis3r.eval.margins import per_pair_table
     from pis3r.eval.report import write_report
     from pis3r.eval.runner import CASE_TASK, EvalConfig, run_evaluation
 
@@ -47,5 +48,7 @@ def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet
     for path in write_report(rows, outdir, title=f"pis3r evaluation of {data.name}"):
         if path.parent == outdir:
             click.echo(str(path))
+    for line in per_pair_table([r for r in rows if r["method"] != CASE_TASK]):
+        click.echo(line)
     for line in errors:
         click.echo(f"pis3r eval: error (not cached, rerun to retry): {line}", err=True)

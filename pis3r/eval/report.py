@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from pis3r.eval.cases import PARALLAX_CLASSES, UNKNOWN_CLASS
+from pis3r.eval.margins import BEHIND_DB, SUBJECT, margin_fields, pair_margins, per_pair_table
 from pis3r.eval.runner import CASE_TASK, preview_path
 from pis3r.io import read_image, to_uint8, write_bytes, write_png
 
@@ -170,6 +171,13 @@ def render_markdown(rows: list[dict], title: str) -> str:
             out += [f"## {dataset}: no-reference quality of the stitched canvases", ""]
             for name, group in groups:
                 out += [f"### {name}", "", *markdown_table(_by_method(group, methods), NO_REFERENCE), ""]
+    versus_peers = per_pair_table(method_rows) if ground_truth else []
+    if versus_peers:
+        out += [f"## {SUBJECT} against the best peer, per pair", "",
+                f"Extension PSNR (dB) / LPIPS of each method (the registered protocol above, a failure scored as "
+                f"an empty extension); the best peer is the other method with the highest PSNR on the pair; "
+                f"the pairs where {SUBJECT} is more than {BEHIND_DB:g} dB below it are counted per class.", "",
+                *versus_peers, ""]
     out += ["## Wall time per method", "", "Seconds of the method itself per pair (its child process; "
             "failed runs excluded).", "", *_timing_table(method_rows, methods), ""]
     out += ["## Per case", "", *_per_case_table(method_rows, ground_truth), ""]
@@ -210,8 +218,11 @@ def _cell(value, fmt: str = "{:.3f}") -> str:
 
 
 def write_csv(rows: list[dict], path: Path) -> None:
-    """``report.csv``: one line per case x method, every key any row has."""
+    """``report.csv``: one line per case x method, every key any row has; pis3r's lines also
+    carry the best peer of the pair, its PSNR and pis3r's margin to it."""
     method_rows = [r for r in rows if r["method"] != CASE_TASK]
+    margins = margin_fields(pair_margins(method_rows))
+    method_rows = [{**r, **margins.get(r["case"], {})} if r["method"] == SUBJECT else r for r in method_rows]
     keys = list(dict.fromkeys(k for r in method_rows for k in r))
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=keys, restval="")
