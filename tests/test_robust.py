@@ -74,3 +74,13 @@ def test_no_model_means_no_inliers():
         assert model is None and inliers.shape == (20,) and not inliers.any()
     E, inliers = fit_essential(line / 100.0, line / 50.0, 1e-3, FOCAL_SCAN)
     assert E is None and not inliers.any()
+
+
+def test_too_few_points_are_no_model_rather_than_an_opencv_error():
+    rng = np.random.default_rng(1)
+    for fit, count in ((fit_fundamental, 7), (fit_homography, 3)):
+        pts = rng.uniform(0, 100, (count, 2))
+        model, inliers = fit(pts, pts + 1.0, 1.0, MATCH_FILTER)
+        assert model is None and inliers.shape == (count,) and not inliers.any()
+    E, inliers = fit_essential(rng.uniform(-1, 1, (4, 2)), rng.uniform(-1, 1, (4, 2)), 1e-3, FOCAL_SCAN)
+    assert E is None and inliers.shape == (4,)
