@@ -24,7 +24,7 @@ from pis3r.reconstruct.base import ReconstructOptions, create_backend, resolve_b
 from pis3r.scene import Scene
 from pis3r.stitch.blend import BLEND_METHODS, blend_reference_border
 from pis3r.stitch.holes import fill_holes
-from pis3r.stitch.reproject import reproject_to_canvas
+from pis3r.stitch.render import render_to_canvas
 from pis3r.refine import default_weights_path, refine_canvas
 
 # Inputs above this are downscaled before anything else (memory and time grow
@@ -218,7 +218,7 @@ def stitch(
     for index in refs:
         sub = StageTimer(quiet=quiet, prefix=f"ref {index}: " if ref == "all" else "")
         with sub.stage("reproject"):
-            canvas = reproject_to_canvas(scene, inputs.index(index), max_canvas_scale, options.device)
+            canvas = render_to_canvas(scene, inputs.index(index), max_canvas_scale, options.device)
         with sub.stage("fill holes"):
             filled = fill_holes(canvas.image, canvas.occupied, radius=hole_radius)
         with sub.stage("blend"):

@@ -40,7 +40,7 @@ import numpy as np
 from pis3r.camera import Camera, intrinsics
 from pis3r.scene import Scene, View
 from pis3r.stitch.holes import fill_holes
-from pis3r.stitch.reproject import reproject_to_canvas
+from pis3r.stitch.render import render_to_canvas
 
 # Photos that ship inside scikit-image (no download). Never the evaluation set.
 PHOTO_NAMES = (
@@ -292,7 +292,7 @@ def make_pair(seed: int, size: int = 128) -> TrainingPair:
     source = View(_degrade_photo(rng, source_image), _perturbed_camera(rng, source_camera, median_depth),
                   estimated, (estimated > 0).astype(np.float32), "source")  # fmt: skip
 
-    canvas = reproject_to_canvas(Scene([ref, source]), ref_index=0, max_canvas_scale=size / min(ww, wh) + 1)
+    canvas = render_to_canvas(Scene([ref, source]), ref_index=0, max_canvas_scale=size / min(ww, wh) + 1)
     filled = fill_holes(canvas.image, canvas.occupied)
     mask = np.where(canvas.occupied, MASK_PROJECTED, np.where(filled.hole, MASK_INPAINTED, MASK_BACKGROUND))
 
