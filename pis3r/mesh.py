@@ -73,14 +73,19 @@ def grid_corners(grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.stack([a, b]), np.stack([c, c]), np.stack([b, d])
 
 
-def grid_faces(keep: np.ndarray) -> np.ndarray:
-    """``(M, 3)`` int32 row-major vertex ids of the triangles ``keep`` ``(2, rows-1, cols-1)`` selects."""
+def grid_faces(keep: np.ndarray, step: int = 1, grid_cols: int | None = None) -> np.ndarray:
+    """``(M, 3)`` int32 row-major vertex ids of the triangles ``keep`` ``(2, rows, cols)`` selects.
+
+    ``step = 1``: ``keep`` is over the blocks of the vertex grid (``rows + 1`` x ``cols + 1``
+    vertices). ``step = k``: over blocks of ``k x k`` grid blocks (corners every ``k``-th
+    vertex) of a grid with ``grid_cols`` vertex columns."""
     _, rows, cols = keep.shape
+    grid_cols = cols + 1 if grid_cols is None else grid_cols
     kind, r, c = np.nonzero(keep)
-    a = (r * (cols + 1) + c).astype(np.int32)
-    b, cc = a + 1, a + np.int32(cols + 1)
+    a = (r * step * grid_cols + c * step).astype(np.int32)
+    b, cc = a + np.int32(step), a + np.int32(step * grid_cols)
     first = kind == 0
-    return np.stack([np.where(first, a, b), cc, np.where(first, b, cc + 1)], 1)
+    return np.stack([np.where(first, a, b), cc, np.where(first, b, cc + step)], 1)
 
 
 def signed_area(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:

@@ -35,9 +35,20 @@ def _textured(h, w, seed=0, blur=2.0):
     return np.clip((smooth - smooth.mean()) * 4 + 0.5, 0, 1).astype(np.float32)
 
 
-def _blank_reference(K, w, h):
+def _blank_reference(K, w, h, beside=0):
+    """An empty reference view with intrinsics ``K``, looking ``beside`` pixels to the left
+    of what ``K`` sees: ``K``'s pixel ``(u, v)`` is its pixel ``(u + beside, v)``, so with
+    ``beside >= w`` everything the other views show lands outside it, on the canvas."""
+    K = K.copy()
+    K[0, 2] += beside
     return View(np.zeros((h, w, 3), np.float32), Camera.identity(K, w, h), np.zeros((h, w), np.float32),
                 np.zeros((h, w), np.float32))
+
+
+def _beside(canvas, array, beside, w, h):
+    """The ``(h, w)`` window of a canvas ``array`` that ``K``'s image covers (see :func:`_blank_reference`)."""
+    ox, oy = canvas.ref_offset
+    return array[oy:oy + h, ox + beside:ox + beside + w]
 
 
 def test_exact_depth_reproduces_the_true_wide_view():
@@ -98,53 +109,70 @@ def _two_planes(cut: bool):
     K = intrinsics(80, w, h)
     depth = np.full((h, w), 8.0, np.float32)
     depth[20:60, 20:60] = 2.0
-    image = _textured(h, w)
-    source = View(image, Camera(K, np.eye(3), [0.4, 0, 0], w, h), depth, np.ones((h, w), np.float32))
-    scene = Scene([_blank_reference(K, w, h), source])
+    source = View(_textured(h, w), Camera(K, np.eye(3), [0.4, 0, 0], w, h), depth, np.ones((h, w), np.float32))
+    scene = Scene([_blank_reference(K, w, h, beside=w), source])
     original = render.view_mesh
     try:
         if not cut:  # every triangle kept: the angle limit at 90 degrees never cuts
             render.view_mesh = functools.partial(original, max_angle_deg=90.0)
-        return render_to_canvas(scene, match_exposure=False)
+        # No stretch limit: the sliver across the jump is stretched 13x and would go for that too.
+        canvas = render_to_canvas(scene, match_exposure=False, max_stretch=np.inf)
     finally:
         render.view_mesh = original
+    return canvas, _beside(canvas, canvas.occupied, w, w, h)
 
 
 def test_mesh_cut_at_a_depth_jump_leaves_the_background_uncovered_behind_the_edge():
     # The square's right edge at source u = 59 moves left by 80 * 0.4 / 2 = 16 px in the reference
-    # (to 43), the wall beside it by 80 * 0.4 / 8 = 4 px (to 56): reference columns 44..55 show
-    # wall the source never saw.
-    cut = _two_planes(cut=True)
+    # (to 43), the wall beside it by 80 * 0.4 / 8 = 4 px (to 56): columns 44..55 show wall the
+    # source never saw.
+    canvas, drawn = _two_planes(cut=True)
     rows = slice(25, 55)
-    assert not cut.under_valid[rows, 45:55].any()
-    assert cut.under_valid[rows, 6:43].all() and cut.under_valid[rows, 57:75].all()
-    assert cut.surfaces[0].cut > 0
+    assert not drawn[rows, 45:55].any()
+    assert drawn[rows, 6:43].all() and drawn[rows, 57:75].all()
+    assert canvas.surfaces[0].cut > 0
     # Without the cut the foreground edge smears over the gap: the test can tell the difference.
-    smeared = _two_planes(cut=False)
-    assert smeared.under_valid[rows, 45:55].all()
+    _, smeared = _two_planes(cut=False)
+    assert smeared[rows, 45:55].all()
 
 
-def _zoomed_source(magnification: float):
-    """A source camera at the reference's centre with ``magnification`` times less focal
-    (and as many times fewer pixels) looking at a fronto-parallel wall."""
+def _wall_seen_from(source_camera_of):
+    """A fronto-parallel textured wall at z = 5 seen by the source camera that
+    ``source_camera_of(K)`` returns (``K``: the reference's intrinsics), rendered beside
+    the reference; returns the canvas and the ``(90, 120)`` window of ``K``'s pixels."""
     w, h = 120, 90
     K = intrinsics(100, w, h)
-    sw, sh = int(w / magnification) + 4, int(h / magnification) + 4
-    source_K = intrinsics(100 / magnification, sw, sh)
-    source = View(_textured(sh, sw, blur=1.0), Camera.identity(source_K, sw, sh), np.full((sh, sw), 5.0, np.float32),
-                  np.ones((sh, sw), np.float32))
-    return render_to_canvas(Scene([_blank_reference(K, w, h), source]), match_exposure=False)
+    camera = source_camera_of(K)
+    sw, sh = camera.width, camera.height
+    depth = np.full((sh, sw), 5.0 - camera.center[2], np.float32)
+    source = View(_textured(sh, sw, blur=1.0), camera, depth, np.ones((sh, sw), np.float32))
+    canvas = render_to_canvas(Scene([_blank_reference(K, w, h, beside=w), source]), match_exposure=False)
+    return canvas, _beside(canvas, canvas.occupied, w, w, h)
 
 
-def test_a_view_magnified_4x_leaves_no_hole_inside_its_footprint_and_8x_is_dropped():
-    canvas = _zoomed_source(4.0)
-    assert canvas.under_valid.all()
-    assert canvas.surfaces[0].magnified == 0
-    # Beyond MAX_MAGNIFICATION the view does not enter the canvas, and the count says so.
-    assert render.MAX_MAGNIFICATION < 8
-    blown_up = _zoomed_source(8.0)
-    assert not blown_up.under_valid.any()
-    assert blown_up.surfaces[0].magnified == blown_up.surfaces[0].meshed - blown_up.surfaces[0].cut > 0
+def test_a_view_magnified_4x_leaves_no_hole_inside_its_footprint():
+    # A quarter of the focal and of the pixels: every source pixel covers 4x4 canvas pixels.
+    def quarter(K):
+        return Camera.identity(intrinsics(25, 34, 26), 34, 26)
+
+    canvas, drawn = _wall_seen_from(quarter)
+    assert drawn.all()
+    assert canvas.surfaces[0].stretched == 0
+
+
+def test_a_surface_stretched_by_geometry_beyond_the_limit_is_dropped():
+    # Same focal, four times farther from the wall: the wall is magnified 4x by geometry alone.
+    def far(K, distance=4.0):
+        return Camera(K, np.eye(3), [0, 0, 5.0 * (distance - 1)], 120, 90)
+
+    assert render.MAX_STRETCH < 4
+    canvas, drawn = _wall_seen_from(far)
+    assert not drawn.any()
+    counts = canvas.surfaces[0]
+    assert counts.stretched == counts.meshed - counts.cut > 0
+    # The same view 2x farther is kept.
+    canvas, drawn = _wall_seen_from(functools.partial(far, distance=2.0))
+    assert drawn[30:60, 40:80].all() and canvas.surfaces[0].stretched == 0
 
 
 def test_colour_is_sampled_at_sub_pixel_positions_like_cv2_remap():

@@ -15,10 +15,15 @@ Which surfaces enter the canvas (on top of the mesh's cut rule):
   times the median depth (numerically on the camera plane);
 - triangles that face away from the reference camera (their winding flips: the
   reference would see the back of the surface the view photographed);
-- triangles magnified more than ``MAX_MAGNIFICATION`` times (linear: the square root
-  of canvas area over source area, in full-resolution pixels): with many views this
-  keeps one view's close foreground from being blown up over the canvas, and keeps
-  the canvas from growing to hold it. Their counts are in ``Canvas.surfaces``.
+- triangles stretched more than ``MAX_STRETCH`` times: their magnification (linear: the
+  square root of canvas area over source area, in full-resolution pixels) divided by
+  the focal ratio ``f_ref / f_view``. A view taken with a shorter focal or fewer pixels
+  is magnified as a whole and stays (it is all there is of it, sampled bicubically);
+  what is dropped is stretch from geometry: a surface the view saw close-up or at a
+  grazing angle, blown up where the reference sees it. With the eleven fountain views
+  the outermost one (54 degrees from the reference) is stretched 3.5-4.5x over a
+  plane its depth extrapolates, and without this rule it takes 40 % of the canvas and
+  grows it toward the cap. Their counts are in ``Canvas.surfaces``.
 """
 
 from __future__ import annotations
@@ -31,17 +36,21 @@ import numpy as np
 from pis3r.camera import Camera
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
 from pis3r.scene import Scene
+from pis3r.stitch.blend import BAND_FRACTION
 from pis3r.stitch.raster import Raster, Triangles, rasterise
 
 # Points closer than this (relative to the median scene depth) are numerically on
 # the camera plane: their projection explodes, so their triangles are dropped.
 MIN_RELATIVE_DEPTH = 1e-3
-# Triangles magnified more than this (linear) onto the canvas are dropped.
-MAX_MAGNIFICATION = 6.0
+# Triangles stretched more than this (linear magnification over the focal ratio) are dropped.
+MAX_STRETCH = 3.0
 # Canvas pixels sampled per view to estimate its exposure gain.
-GAIN_SAMPLES = 200_000
+GAIN_SAMPLES = 50_000
 # The canvas is at most this many times the reference's width and height.
 DEFAULT_MAX_CANVAS_SCALE = 3.0
+# Grid blocks deep inside the reference are drawn this many to a side as one (see
+# _faces_coarse_under_reference).
+UNDER_REFERENCE_STEP = 8
 # Colour sampling of the sources (cv2.remap): bicubic keeps magnified views sharp.
 COLOUR_INTERPOLATION = cv2.INTER_CUBIC
 
@@ -50,7 +59,7 @@ COLOUR_INTERPOLATION = cv2.INTER_CUBIC
 class SurfaceCounts:
     """Triangles of one view's mesh: ``meshed`` (two per grid block), ``cut`` by the mesh's
     cut rule (missing depth, grazing angle), ``behind`` (a vertex on or behind the
-    reference's camera plane), ``back_facing``, ``magnified`` (beyond ``MAX_MAGNIFICATION``),
+    reference's camera plane), ``back_facing``, ``stretched`` (beyond ``MAX_STRETCH``),
     and ``rendered`` (the rest, drawn into the z-buffer)."""
 
     view: int
@@ -58,7 +67,7 @@ class SurfaceCounts:
     cut: int
     behind: int
     back_facing: int
-    magnified: int
+    stretched: int
     rendered: int
 
     def to_dict(self) -> dict:
@@ -109,7 +118,7 @@ class _ViewSurface:
     faces: np.ndarray
 
 
-def _surfaces(scene: Scene, ref_index: int, max_magnification: float):
+def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
     """Every other view's cut mesh in the reference camera (the rules of the module
     docstring applied), and its :class:`SurfaceCounts`."""
     ref = scene.views[ref_index].camera
@@ -123,13 +132,13 @@ def _surfaces(scene: Scene, ref_index: int, max_magnification: float):
         R_rel = ref.R @ cam.R.T
         t_rel = ref.t - R_rel @ cam.t
         points = mesh.points @ R_rel.T.astype(np.float32) + t_rel.astype(np.float32)
-        meshes.append((index, mesh, points))
-    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points in meshes] or [[]])
+        meshes.append((index, mesh, points, ref.focal / cam.focal))
+    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes] or [[]])
     positive = z_all[z_all > 0]
     min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
 
     surfaces, counts = [], []
-    for index, mesh, points in meshes:
+    for index, mesh, points, focal_ratio in meshes:
         z = points[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
@@ -139,19 +148,41 @@ def _surfaces(scene: Scene, ref_index: int, max_magnification: float):
         front_facing = canvas_area > 0
         # Both triangles of a grid block have half its area in source pixels.
         source_area = 0.5 * np.diff(mesh.ys)[:, None] * np.diff(mesh.xs)[None, :]
-        modest = canvas_area <= max_magnification**2 * source_area
+        modest = canvas_area <= (max_stretch * focal_ratio) ** 2 * source_area
         kept = mesh.keep & in_front
         behind = int((mesh.keep & ~in_front).sum())
         back_facing = int((kept & ~front_facing).sum())
         kept &= front_facing
-        magnified = int((kept & ~modest).sum())
+        stretched = int((kept & ~modest).sum())
         kept &= modest
         counts.append(SurfaceCounts(
             view=index, meshed=mesh.keep.size, cut=mesh.cut, behind=behind, back_facing=back_facing,
-            magnified=magnified, rendered=int(kept.sum()),
+            stretched=stretched, rendered=int(kept.sum()),
         ))
-        surfaces.append(_ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, grid_faces(kept)))
+        faces = _faces_coarse_under_reference(kept, xy, ref.width, ref.height)
+        surfaces.append(_ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, faces))
     return surfaces, counts
+
+
+def _faces_coarse_under_reference(kept: np.ndarray, xy: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(M, 3)`` faces of the ``kept`` ``(2, rows-1, cols-1)`` triangles, with every
+    ``UNDER_REFERENCE_STEP``-square of whole grid blocks that lands deep inside the
+    reference (``xy`` ``(rows, cols, 2)`` in its pixels, ``width x height``) drawn as two
+    triangles instead. The reference's pixels cover them; they only tell exposure gains
+    and blending what the other views see there, which needs no fine geometry, and most
+    of a view's triangles are there. "Deep" keeps the blend band at the border fine."""
+    step = UNDER_REFERENCE_STEP
+    margin = BAND_FRACTION * min(width, height) + 2
+    inside = ((xy[..., 0] >= margin) & (xy[..., 0] <= width - 1 - margin)
+              & (xy[..., 1] >= margin) & (xy[..., 1] <= height - 1 - margin))
+    # A convex window holds a block when it holds the block's four corners.
+    block = kept[0] & kept[1] & np.all(grid_corners(inside), axis=(0, 1))
+    rows, cols = block.shape[0] // step, block.shape[1] // step
+    coarse = block[: rows * step, : cols * step].reshape(rows, step, cols, step).all(axis=(1, 3))
+    covered = np.zeros(block.shape, bool)
+    covered[: rows * step, : cols * step] = np.repeat(np.repeat(coarse, step, axis=0), step, axis=1)
+    fine = grid_faces(kept & ~covered)
+    return np.concatenate([fine, grid_faces(np.stack([coarse, coarse]), step, xy.shape[1])])
 
 
 def _window(coords: np.ndarray, ref_size: int, limit: int) -> tuple[int, int]:
@@ -232,7 +263,7 @@ def render_to_canvas(
     device: str = "cpu",
     match_exposure: bool = True,
     raster_backend: str = "auto",
-    max_magnification: float = MAX_MAGNIFICATION,
+    max_stretch: float = MAX_STRETCH,
 ) -> Canvas:
     """Render every view's surface of ``scene`` into camera ``ref_index`` on a canvas that
     grows to hold them (capped at ``max_canvas_scale`` times the reference's size).
@@ -249,7 +280,7 @@ def render_to_canvas(
     del device  # see the docstring: OpenGL picks its own device
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
-    surfaces, counts = _surfaces(scene, ref_index, max_magnification)
+    surfaces, counts = _surfaces(scene, ref_index, max_stretch)
 
     vertices = [s.xy[used_vertices(s.faces, len(s.xy))] for s in surfaces]
     xy = np.concatenate(vertices) if vertices else np.zeros((0, 2), np.float32)
