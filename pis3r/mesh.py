@@ -114,6 +114,20 @@ def grid_vertices(keep: np.ndarray) -> np.ndarray:
     return used
 
 
+def _facing(points: np.ndarray, max_angle_deg: float) -> np.ndarray:
+    """``(2, rows-1, cols-1)`` bool: triangles of the ``(rows, cols, 3)`` grid of camera-frame
+    points whose normal is within ``max_angle_deg`` of the ray through their centroid."""
+    (x0, x1, x2), (y0, y1, y2), (z0, z1, z2) = (grid_corners(points[..., i]) for i in range(3))
+    ax, ay, az = x1 - x0, y1 - y0, z1 - z0
+    bx, by, bz = x2 - x0, y2 - y0, z2 - z0
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    rx, ry, rz = x0 + x1 + x2, y0 + y1 + y2, z0 + z1 + z2
+    dot = nx * rx + ny * ry + nz * rz
+    # cos^2 >= limit, without square roots or divisions.
+    limit = np.float32(np.cos(np.radians(max_angle_deg)) ** 2)
+    return dot * dot >= limit * (nx * nx + ny * ny + nz * nz) * (rx * rx + ry * ry + rz * rz)
+
+
 def view_mesh(view: View, max_side: int = MESH_MAX_SIDE, max_angle_deg: float = MAX_SURFACE_ANGLE_DEG) -> ViewMesh:
     """The cut triangle mesh of ``view``'s depth map (see the module docstring)."""
     h, w = view.depth.shape
@@ -127,15 +141,8 @@ def view_mesh(view: View, max_side: int = MESH_MAX_SIDE, max_angle_deg: float = 
                      np.ones_like(u)], -1)
     points = rays * np.where(valid, depth, 0.0)[..., None]
 
-    p0, p1, p2 = grid_corners(points)
     v0, v1, v2 = grid_corners(valid)
-    normal = np.cross(p1 - p0, p2 - p0)
-    ray = p0 + p1 + p2
-    # |cos| of the angle between normal and ray >= cos(max angle), without a square root.
-    dot = np.einsum("...i,...i->...", normal, ray)
-    limit = np.float32(np.cos(np.radians(max_angle_deg)) ** 2)
-    facing = dot * dot >= limit * np.einsum("...i,...i->...", normal, normal) * np.einsum("...i,...i->...", ray, ray)
-    keep = v0 & v1 & v2 & facing
+    keep = v0 & v1 & v2 & _facing(points, max_angle_deg)
     return ViewMesh(xs=xs, ys=ys, points=points, keep=keep, cut=int(keep.size - keep.sum()))
 
 

@@ -1,3 +1,4 @@
+import concurrent.futures
 import functools
 
 import cv2
@@ -208,13 +209,23 @@ def test_colour_is_sampled_at_sub_pixel_positions_like_cv2_remap():
 def test_fallback_without_egl_matches_the_default_path(monkeypatch):
     _, scene = _planes()
     default = render_to_canvas(scene)
-    monkeypatch.setitem(raster._gl_state, "context", None)  # as on a machine without EGL
+    monkeypatch.setattr(raster._gl_state, "context", None, raising=False)  # as on a machine without EGL
     assert not raster.gl_available()
     fallback = render_to_canvas(scene)
     assert fallback.image.shape == default.image.shape
     both = fallback.occupied & default.occupied
     assert both.sum() > 0.99 * max(fallback.occupied.sum(), default.occupied.sum())
     assert np.median(np.abs(fallback.image[both] - default.image[both])) * 255 <= 1.0
+
+
+def test_gl_renders_from_another_thread():
+    if not raster.gl_available():
+        pytest.skip("no EGL context on this machine")
+    _, scene = _planes()
+    here = render_to_canvas(scene, raster_backend="gl")
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        there = pool.submit(render_to_canvas, scene, raster_backend="gl").result()
+    np.testing.assert_array_equal(here.source, there.source)
 
 
 def test_numpy_and_gl_rasterisers_agree():

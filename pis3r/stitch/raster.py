@@ -17,6 +17,7 @@ its depth and its perspective-correct attribute (interpolated linearly in 3-D, i
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,21 +78,23 @@ class Raster:
     uv: np.ndarray
 
 
-_gl_state: dict = {}
+# An OpenGL context is current in the thread that made it: one per thread (the web
+# server stitches in worker threads).
+_gl_state = threading.local()
 
 
 def _gl():
-    """The cached ``(context, program)``, or ``None`` when no EGL context can be created."""
-    if "context" not in _gl_state:
+    """This thread's cached ``(context, program)``, or ``None`` when no EGL context can be created."""
+    if not hasattr(_gl_state, "context"):
         try:
             import moderngl
 
             context = moderngl.create_standalone_context(backend="egl")
             program = context.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-            _gl_state["context"] = (context, program)
+            _gl_state.context = (context, program)
         except Exception:  # no libEGL, no driver, no moderngl: the numpy path runs instead
-            _gl_state["context"] = None
-    return _gl_state["context"]
+            _gl_state.context = None
+    return _gl_state.context
 
 
 def gl_available() -> bool:
@@ -154,15 +157,19 @@ def _rasterise_gl(batches: list[Triangles], width: int, height: int) -> Raster:
                     program["layer"].value = float(index)
                     vao.render(moderngl.TRIANGLES)
                 # The framebuffer's row 0 is the bottom row, and canvas row y0 was mapped to it.
-                pixels = framebuffer.read(viewport=(0, 0, w, h), components=4, dtype="f4")
-                out[y0:y0 + h, x0:x0 + w] = np.frombuffer(pixels, np.float32).reshape(h, w, 4)
+                tile = out[y0:y0 + h, x0:x0 + w]
+                if tile.flags.c_contiguous:
+                    framebuffer.read_into(tile, viewport=(0, 0, w, h), components=4, dtype="f4")
+                else:
+                    pixels = framebuffer.read(viewport=(0, 0, w, h), components=4, dtype="f4")
+                    tile[...] = np.frombuffer(pixels, np.float32).reshape(h, w, 4)
     finally:
         for _, vao, vbo, ibo in arrays:
             vao.release(), vbo.release(), ibo.release()
         framebuffer.release(), color.release(), depth.release()
     layer = np.rint(out[..., 3]).astype(np.int16) - 1
     hit = layer >= 0
-    return Raster(layer=layer, z=np.where(hit, out[..., 2], np.inf).astype(np.float32), uv=out[..., :2].copy())
+    return Raster(layer=layer, z=np.where(hit, out[..., 2], np.float32(np.inf)), uv=out[..., :2])
 
 
 def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raster:

@@ -250,10 +250,11 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.
         uv = raster.uv[box]
         sampled = cv2.remap(scene.views[index].image, uv[..., 0], uv[..., 1], COLOUR_INTERPOLATION,
                             borderMode=cv2.BORDER_REPLICATE)
-        # Bicubic overshoots at sharp edges; the gain may push past white.
-        sampled = np.clip(cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,)), 0.0, 1.0)
+        if (gains[k] != 1).any():
+            cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,), dst=sampled)
         np.copyto(image[box], sampled, where=mine[box][..., None])
-    return image
+    # Bicubic overshoots at sharp edges; a gain may push past white.
+    return np.clip(image, 0.0, 1.0, out=image)
 
 
 def render_to_canvas(
