@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pis3r.errors import Pis3rError
+
 RASTER_BACKENDS = ("auto", "gl", "numpy")
 # Largest square tile rendered at once by OpenGL (bounds the framebuffer's memory).
 GL_TILE = 4096
@@ -108,12 +110,13 @@ def rasterise(batches: list[Triangles], width: int, height: int, backend: str = 
         raise ValueError(f"raster backend must be one of {RASTER_BACKENDS}, got {backend!r}")
     if backend == "gl" or (backend == "auto" and gl_available()):
         if not gl_available():
-            raise RuntimeError("no OpenGL context: EGL is not available on this machine")
+            raise Pis3rError("the gl rasteriser needs an OpenGL context, and EGL is not available on this machine")
         return _rasterise_gl(batches, width, height)
     return _rasterise_numpy(batches, width, height)
 
 
 def _depth_range(batches: list[Triangles]) -> tuple[float, float]:
+    """``(near, far)`` clip planes around every depth the faces use."""
     used = [b.z[b.faces.ravel()] for b in batches if len(b.faces)]
     if not used:
         return 1.0, 2.0
