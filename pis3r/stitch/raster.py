@@ -80,23 +80,26 @@ class Raster:
     uv: np.ndarray
 
 
-# An OpenGL context is current in the thread that made it: one per thread (the web
-# server stitches in worker threads).
-_gl_state = threading.local()
+# One OpenGL context for the process, made current in whichever thread renders (the web
+# server stitches in worker threads) under a lock, and never released: releasing an EGL
+# context terminates the display that every context of the process shares.
+_gl_lock = threading.Lock()
+_gl_state: dict = {}
 
 
 def _gl():
-    """This thread's cached ``(context, program)``, or ``None`` when no EGL context can be created."""
-    if not hasattr(_gl_state, "context"):
-        try:
-            import moderngl
+    """The process's ``(context, program)``, or ``None`` when no EGL context can be created."""
+    with _gl_lock:
+        if "context" not in _gl_state:
+            try:
+                import moderngl
 
-            context = moderngl.create_standalone_context(backend="egl")
-            program = context.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-            _gl_state.context = (context, program)
-        except Exception:  # no libEGL, no driver, no moderngl: the numpy path runs instead
-            _gl_state.context = None
-    return _gl_state.context
+                context = moderngl.create_standalone_context(backend="egl")
+                program = context.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+                _gl_state["context"] = (context, program)
+            except Exception:  # no libEGL, no driver, no moderngl: the numpy path runs instead
+                _gl_state["context"] = None
+    return _gl_state["context"]
 
 
 def gl_available() -> bool:
@@ -127,9 +130,15 @@ def _depth_range(batches: list[Triangles]) -> tuple[float, float]:
 
 
 def _rasterise_gl(batches: list[Triangles], width: int, height: int) -> Raster:
+    context, _ = _gl()
+    with _gl_lock, context:  # current in this thread for the duration
+        return _render_gl(batches, width, height)
+
+
+def _render_gl(batches: list[Triangles], width: int, height: int) -> Raster:
     import moderngl
 
-    context, program = _gl()
+    context, program = _gl_state["context"]
     near, far = _depth_range(batches)
     program["depth_map"].value = ((far + near) / (far - near), -2.0 * far * near / (far - near))
     arrays = []
