@@ -56,7 +56,7 @@ def fountain(data: Path, save: Path | None) -> None:
           f"stitch {seconds:.1f} s, views kept {len(result.scene.views)}/{len(ordered)}")
     canvas = render_to_canvas(result.scene)
     totals = {key: sum(getattr(s, key) for s in canvas.surfaces) for key in
-              ("meshed", "cut", "behind", "back_facing", "magnified", "rendered")}
+              ("meshed", "cut", "behind", "back_facing", "stretched", "rendered")}
     print("fountain triangles: " + ", ".join(f"{k} {v}" for k, v in totals.items()))
     if save:
         save.mkdir(parents=True, exist_ok=True)
