@@ -6,7 +6,7 @@
     >>> result.save("out/")                                     # doctest: +SKIP
 
 The pipeline, one stage per module: read (:mod:`pis3r.io`) -> reconstruct
-(:mod:`pis3r.reconstruct`) -> reproject (:mod:`pis3r.stitch.reproject`) -> fill holes
+(:mod:`pis3r.reconstruct`) -> render (:mod:`pis3r.stitch.render`) -> fill holes
 (:mod:`pis3r.stitch.holes`) -> blend (:mod:`pis3r.stitch.blend`) -> refine
 (:mod:`pis3r.refine`) -> :class:`~pis3r.result.StitchResult`.
 """
@@ -36,7 +36,7 @@ from pis3r.stitch.blend import blend_reference_border
 from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
-from pis3r.stitch.reproject import Canvas, reproject_to_canvas
+from pis3r.stitch.render import Canvas, render_to_canvas
 
 # Inputs above this are downscaled before anything else (memory and time grow
 # with pixels; the geometry does not need more).
@@ -149,11 +149,11 @@ class Composite:
 
 
 def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: StageTimer) -> Composite:
-    """Reproject, fill holes, blend and (optionally) refine the canvas of input ``ref_index``."""
+    """Render, fill holes, blend and (optionally) refine the canvas of input ``ref_index``."""
     sub = timer.child(f"ref {ref_index}: " if options.ref == "all" else "")
     device = options.device
-    with sub.stage("reproject"):
-        canvas = reproject_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale, device)
+    with sub.stage("render"):
+        canvas = render_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale, device)
     with sub.stage("fill holes"):
         filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius)
     with sub.stage("blend"):
@@ -191,6 +191,7 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
             "background": round(float((mask == MaskValue.BACKGROUND).sum()) / total, 5),
         },
         "dropped_points": canvas.dropped_points,
+        "surfaces": [surfaces.to_dict() for surfaces in canvas.surfaces],
         "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in scene.views],
         "dropped": [dropped.to_dict() for dropped in scene.dropped],
         "warnings": list(warnings),

@@ -74,10 +74,12 @@ def main() -> None:
               help="Directory for stitched.png, mask.png, camera.json, report.json (and points.ply).")
 @click_options(*OPTION_NAMES)
 @click.option("--ply", is_flag=True, help="Also write points.ply (all views' points, xyz + rgb).")
+@click.option("--mesh", is_flag=True, help="Also write mesh.ply (every view's surface as rendered: vertices, "
+              "faces, colours; opens in Open3D, MeshLab, Blender).")
 @click.option("--colmap", "colmap_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Also write a COLMAP text model (cameras.txt, images.txt, points3D.txt) into this directory.")
 @click.option("--quiet", is_flag=True, help="No progress lines on stderr.")
-def stitch_command(images, outdir, ply, colmap_dir, quiet, **options):
+def stitch_command(images, outdir, ply, mesh, colmap_dir, quiet, **options):
     """Stitch IMAGES (two or more; the first is the reference unless --ref says otherwise).
 
     Every option's default and allowed values are those of pis3r.StitchOptions."""
@@ -88,7 +90,7 @@ def stitch_command(images, outdir, ply, colmap_dir, quiet, **options):
     for item in results:
         subdir = f"ref_{item.ref_index}" if len(results) > 1 else ""
         colmap = colmap_dir / subdir if colmap_dir is not None else None
-        written = item.save(outdir / subdir, ply=ply, colmap=colmap)
+        written = item.save(outdir / subdir, ply=ply, colmap=colmap, mesh=mesh)
         if not quiet:
             for path in written:
                 click.echo(str(path))

@@ -29,7 +29,7 @@ from pis3r.refine.canvas import DEFAULT_REGION, DEFAULT_STEPS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
 from pis3r.stitch.choose import DEFAULT_DEPTH_FILL_CHOICE, DEFAULT_MODEL, DEPTH_FILL_CHOICES, MODEL_CHOICES
 from pis3r.stitch.holes import DEFAULT_HOLE_RADIUS
-from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
+from pis3r.stitch.render import DEFAULT_MAX_CANVAS_SCALE
 
 
 def _option(default: Any, help: str, *, choices: tuple | None = None, low: float | None = None,

@@ -11,6 +11,7 @@ import numpy as np
 from pis3r import io
 from pis3r.camera import Camera
 from pis3r.colmap import write_colmap_text
+from pis3r.mesh import encode_mesh_ply, scene_mesh
 from pis3r.scene import Scene
 
 CAMERA_CONVENTION = (
@@ -62,12 +63,14 @@ class StitchResult:
         return self.scene.point_cloud()
 
     def save(
-        self, outdir: str | os.PathLike, ply: bool = False, colmap: str | os.PathLike | None = None
+        self, outdir: str | os.PathLike, ply: bool = False, colmap: str | os.PathLike | None = None,
+        mesh: bool = False,
     ) -> list[Path]:
         """Write ``stitched.png``, ``mask.png``, ``camera.json``, ``report.json`` (and
-        ``points.ply``) into ``outdir``, and a COLMAP text model into ``colmap`` if given
-        (see :mod:`pis3r.colmap`). Every file is encoded in memory first and written
-        through a temporary file + rename, so a failure leaves no partial file."""
+        ``points.ply`` with ``ply``, ``mesh.ply`` — every view's cut surface, world frame,
+        vertex colours — with ``mesh``) into ``outdir``, and a COLMAP text model into
+        ``colmap`` if given (see :mod:`pis3r.colmap`). Every file is encoded in memory first
+        and written through a temporary file + rename, so a failure leaves no partial file."""
         outdir = Path(outdir)
         payload = {
             "stitched.png": io.encode_png(self.image),
@@ -77,6 +80,8 @@ class StitchResult:
         }
         if ply:
             payload["points.ply"] = io.encode_ply(*self.point_cloud())
+        if mesh:
+            payload["mesh.ply"] = encode_mesh_ply(*scene_mesh(self.scene))
         written = []
         for name, data in payload.items():
             io.write_bytes(outdir / name, data)

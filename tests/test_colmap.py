@@ -1,5 +1,7 @@
 """COLMAP text export read back by pycolmap, and points.ply read back by a strict PLY parser."""
 
+import json
+
 import numpy as np
 import pycolmap
 import pytest
@@ -55,8 +57,8 @@ def test_cli_writes_colmap_and_a_strictly_valid_ply(small_pair, tmp_path):
         paths.append(str(tmp_path / f"view {index}.png"))
         Image.fromarray(array).save(paths[-1])
     out = tmp_path / "out"
-    run = CliRunner().invoke(main, ["stitch", *paths, "-o", str(out), "--ply", "--colmap", str(out / "sparse"),
-                                    "--quiet", "--backend", "classical"])
+    run = CliRunner().invoke(main, ["stitch", *paths, "-o", str(out), "--ply", "--mesh", "--colmap",
+                                    str(out / "sparse"), "--quiet", "--backend", "classical"])
     assert run.exit_code == 0, run.output
     model = pycolmap.Reconstruction(str(out / "sparse"))
     assert sorted(image.name for image in model.images.values()) == ["stitched.png", "view_0.png", "view_1.png"]
@@ -64,6 +66,12 @@ def test_cli_writes_colmap_and_a_strictly_valid_ply(small_pair, tmp_path):
     assert len(points) > 1000 and colors.shape == points.shape and np.isfinite(points).all()
     assert colors.std() > 3
     assert model.num_points3D() == min(len(points), 100_000)
+    from tests.test_render import read_mesh_ply_strict
+
+    vertices, rgb, faces = read_mesh_ply_strict((out / "mesh.ply").read_bytes())
+    assert len(faces) > 1000 and faces.max() < len(vertices) and np.isfinite(vertices).all()
+    report = json.loads((out / "report.json").read_text())
+    assert [s["view"] for s in report["surfaces"]] and all(s["rendered"] > 0 for s in report["surfaces"])
 
 
 def read_ply_strict(path):

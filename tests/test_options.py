@@ -54,7 +54,7 @@ def test_web_form_offers_the_dataclass_choices():
 def test_defaults_come_from_the_stage_modules():
     from pis3r.stitch.blend import DEFAULT_BLEND
     from pis3r.stitch.holes import DEFAULT_HOLE_RADIUS
-    from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
+    from pis3r.stitch.render import DEFAULT_MAX_CANVAS_SCALE
 
     options = StitchOptions()
     assert (options.max_canvas_scale, options.hole_radius, options.blend) == (

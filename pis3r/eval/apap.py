@@ -31,7 +31,7 @@ from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import OPENCV_CONTRAST_THRESHOLD, detect, match
 from pis3r.io import to_uint8
 from pis3r.robust import MATCH_FILTER, fit_homography
-from pis3r.stitch.reproject import DEFAULT_MAX_CANVAS_SCALE
+from pis3r.stitch.render import DEFAULT_MAX_CANVAS_SCALE
 
 MIN_MATCHES = 12
 SIFT_MAX_FEATURES = 6000

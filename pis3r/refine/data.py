@@ -21,10 +21,11 @@ by the same code that stitches at inference:
    mixed-depth flying pixels appear, 0.1-2 % outliers, random point dropout for
    cracks) and its pose too (0.1-1 deg rotation, 0.5-2 % translation of the scene
    depth, 0.5-2 % focal).
-5. **Our pipeline.** :func:`pis3r.stitch.reproject.reproject_to_canvas` (integer
-   rounding, nearest-point z-buffer) then :func:`pis3r.stitch.holes.fill_holes`
+5. **Our pipeline.** :func:`pis3r.stitch.render.render_to_canvas` (surfaces, one
+   z-buffer, colour sampled from the source) then :func:`pis3r.stitch.holes.fill_holes`
    (closing + Telea + background), and the canvas is cut back to the true frame.
-6. **Mask / target.** ``mask`` = 255 projected, 128 inpainted, 0 background.
+   (The shipped weights were trained on the earlier point-splatting canvases.)
+6. **Mask / target.** ``mask`` = 255 rendered, 128 inpainted, 0 background.
    Outside the closed region the target equals the input (residual 0): the model
    learns to leave legitimate voids alone.
 """
@@ -41,7 +42,7 @@ from pis3r.camera import Camera, intrinsics
 from pis3r.scene import Scene, View
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
-from pis3r.stitch.reproject import reproject_to_canvas
+from pis3r.stitch.render import render_to_canvas
 
 # Photos that ship inside scikit-image (no download). Never the evaluation set.
 PHOTO_NAMES = (
@@ -291,7 +292,7 @@ def make_pair(seed: int, size: int = 128) -> TrainingPair:
     source = View(_degrade_photo(rng, source_image), _perturbed_camera(rng, source_camera, median_depth),
                   estimated, (estimated > 0).astype(np.float32), "source")  # fmt: skip
 
-    canvas = reproject_to_canvas(Scene([ref, source]), ref_index=0, max_canvas_scale=size / min(ww, wh) + 1)
+    canvas = render_to_canvas(Scene([ref, source]), ref_index=0, max_canvas_scale=size / min(ww, wh) + 1)
     filled = fill_holes(canvas.image, canvas.occupied)
     mask = stitch_mask(canvas.occupied, filled.hole)
 

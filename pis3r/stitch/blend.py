@@ -1,6 +1,6 @@
 """Blending across the border of the reference on a stitched canvas.
 
-A global gain per view (``reproject._match_gains``) leaves local exposure
+A global gain per view (``render._exposure_gains``) leaves local exposure
 differences (vignetting, tone curves) that show as a frame around the reference.
 Where the other views overlap the reference we know both colours, so a smooth
 per-pixel gain ``reference / others`` is measured there, carried outward from the
@@ -102,7 +102,7 @@ def blend_reference_border(
     ``image``: ``(H, W, 3)`` float32 canvas with the reference pasted at ``ref_offset``
     ``(x, y)``; ``under``: ``(h, w, 3)`` the other views' colours beneath the reference and
     ``under_valid`` ``(h, w)`` where they exist; ``editable``: ``(H, W)`` bool pixels that may
-    change outside the reference (reprojected or inpainted, not background).
+    change outside the reference (rendered or inpainted, not background).
     Returns a new ``(H, W, 3)`` float32 image; ``method="none"`` returns ``image`` itself.
     """
     if method not in BLEND_METHODS:

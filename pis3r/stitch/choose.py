@@ -29,7 +29,7 @@ from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.propagate import DEPTH_FILLS
 from pis3r.stitch.holes import fill_holes
-from pis3r.stitch.reproject import reproject_to_canvas
+from pis3r.stitch.render import render_to_canvas
 
 # Share of the reference's width and height held back on each side.
 BAND_FRACTION = 0.15
@@ -152,7 +152,7 @@ def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, in
     inner = photos[0]
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
-    canvas = reproject_to_canvas(scene, 0, scale, base.device)
+    canvas = render_to_canvas(scene, 0, scale, base.device)
     filled = fill_holes(canvas.image, canvas.occupied)
     x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
     predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import Camera
-from pis3r.errors import Pis3rError
+from pis3r.gl import current_context, shared_context
 from pis3r.synth.scenes import SynthScene
 
 NEAR, FAR = 0.05, 5000.0  # metres; the backdrop is at most ~400 m from any camera
@@ -109,20 +109,13 @@ def clip_from_world(camera: Camera) -> np.ndarray:
     return gl_projection(camera) @ extrinsics
 
 
-@functools.lru_cache(maxsize=1)
 def gl_context():
-    """The process-wide headless GL context (EGL)."""
-    import moderngl
-
-    try:
-        ctx = moderngl.create_context(standalone=True, backend="egl")
-    except Exception as exc:  # moderngl raises bare Exceptions for a missing EGL/driver
-        raise Pis3rError(
-            f"cannot create a headless OpenGL context (moderngl + EGL): {exc}; "
-            "install Mesa's EGL (Debian/Ubuntu: libegl1 libgl1-mesa-dri)"
-        ) from None
-    ctx.enable(moderngl.DEPTH_TEST)
-    return ctx
+    """The process's shared headless GL context (:mod:`pis3r.gl`)."""
+    context = shared_context()
+    if context is None:
+        with current_context():  # raises the one-line error saying why
+            pass
+    return context
 
 
 @functools.lru_cache(maxsize=1)
@@ -187,7 +180,11 @@ def _target(width: int, height: int):
 
 
 def _draw(scene: SynthScene, camera: Camera, textured: bool):
-    """Rasterise ``scene`` for ``camera`` (one sample per pixel centre); the framebuffer."""
+    """Rasterise ``scene`` for ``camera`` (one sample per pixel centre); the framebuffer.
+    Call with the shared context current."""
+    import moderngl
+
+    gl_context().enable(moderngl.DEPTH_TEST)
     uploaded = _uploaded(scene)
     fbo = _target(camera.width, camera.height)
     fbo.use()
@@ -203,15 +200,17 @@ def _draw(scene: SynthScene, camera: Camera, textured: bool):
 
 def render_depth(scene: SynthScene, camera: Camera) -> np.ndarray:
     """Camera-frame z ``(H, W)`` float32 at each pixel centre, ``inf`` where nothing is hit."""
-    fbo = _draw(scene, camera, textured=False)
-    depth = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
+    with current_context():
+        fbo = _draw(scene, camera, textured=False)
+        depth = np.frombuffer(fbo.read(components=1, attachment=1, dtype="f4"), np.float32)
     return np.where(depth > 0, depth, np.inf).astype(np.float32).reshape(camera.height, camera.width)
 
 
 def render_colour(scene: SynthScene, camera: Camera) -> np.ndarray:
     """RGB ``(H, W, 3)`` float32 in [0, 1], one sample at each pixel centre (aliased)."""
-    fbo = _draw(scene, camera, textured=True)
-    colour = np.frombuffer(fbo.read(components=3, attachment=0, dtype="f4"), np.float32)
+    with current_context():
+        fbo = _draw(scene, camera, textured=True)
+        colour = np.frombuffer(fbo.read(components=3, attachment=0, dtype="f4"), np.float32)
     return colour.reshape(camera.height, camera.width, 3)
 
 

@@ -1,0 +1,138 @@
+"""Quality and speed of the render stage on real photos (issue 10's bars).
+
+    .venv/bin/python benchmarks/render.py [--data ../shared/data/real] [--save /tmp/render] [--only fountain zoom speed]
+
+- ``fountain``: ``pis3r stitch`` of the eleven Strecha fountain views (reference
+  ``0005.jpg``, then the others): on ``mask.png``, the 99th percentile over rows of the
+  number of valid <-> background changes along a row (bar <= 10) and the inpainted share
+  of the valid pixels (bar <= 3 %), the canvas size and the triangles per rule.
+- ``zoom``: reference = the centre half (full resolution) of ``lpc-eyot/ref.jpg``, target =
+  that whole photo at a third of its size; coverage of the extension (bar >= 99 %) and
+  PSNR there against the photo, next to bicubic upsampling of the small target (bar:
+  within 0.5 dB).
+- ``speed``: the render stage alone on a 1 MP and a 6 MP pair of views with smooth depth
+  (bars: <= 60 ms and <= 1 s on an idle 2-core CPU), both rasterisers.
+
+``--save DIR`` writes the fountain's ``stitched.png`` / ``mask.png`` and the zoom canvas there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pis3r.api import stitch
+from pis3r.camera import Camera, intrinsics
+from pis3r.io import read_image, write_png
+from pis3r.scene import Scene, View
+from pis3r.stitch.mask import MaskValue
+from pis3r.stitch.render import render_to_canvas
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+def mask_changes_p99(mask: np.ndarray) -> float:
+    """99th percentile over rows of the valid <-> background changes along a row of ``mask`` ``(H, W)``."""
+    valid = (mask != MaskValue.BACKGROUND).astype(np.int8)
+    return float(np.percentile(np.abs(np.diff(valid, axis=1)).sum(axis=1), 99))
+
+
+def fountain(data: Path, save: Path | None) -> None:
+    images = sorted((data / "strecha-fountain-P11" / "images").glob("*.jpg"))
+    ordered = [p for p in images if p.name == "0005.jpg"] + [p for p in images if p.name != "0005.jpg"]
+    start = time.perf_counter()
+    result = stitch([str(p) for p in ordered], backend="classical", refine="none")
+    seconds = time.perf_counter() - start
+    mask = result.mask
+    valid = mask != MaskValue.BACKGROUND
+    inpainted = float((mask == MaskValue.INPAINTED).sum() / max(1, valid.sum()))
+    h, w = mask.shape
+    print(f"fountain: canvas {w}x{h}, p99 changes per row {mask_changes_p99(mask):.0f} (bar <= 10), "
+          f"inpainted {100 * inpainted:.2f} % of valid (bar <= 3 %), render {result.report['seconds'].get('reproject', float('nan')):.2f} s, "
+          f"stitch {seconds:.1f} s, views kept {len(result.scene.views)}/{len(ordered)}")
+    canvas = render_to_canvas(result.scene)
+    totals = {key: sum(getattr(s, key) for s in canvas.surfaces) for key in
+              ("meshed", "cut", "behind", "back_facing", "stretched", "rendered")}
+    print("fountain triangles: " + ", ".join(f"{k} {v}" for k, v in totals.items()))
+    if save:
+        save.mkdir(parents=True, exist_ok=True)
+        result.save(save / "fountain")
+
+
+def zoom(data: Path, save: Path | None) -> None:
+    photo = read_image(data / "lpc-eyot" / "ref.jpg").pixels
+    h, w = photo.shape[:2]
+    y0, x0 = h // 4, w // 4
+    reference = photo[y0:y0 + h // 2, x0:x0 + w // 2]
+    small = cv2.resize(photo, (round(w / 3), round(h / 3)), interpolation=cv2.INTER_AREA)
+    result = stitch([reference, small], backend="classical", refine="none", blend="none")
+    ox, oy = result.ref_offset
+    # The canvas pixel of photo pixel (x, y) is (x - x0 + ox, y - y0 + oy).
+    ch, cw = result.mask.shape
+    ys, xs = np.mgrid[0:h, 0:w]
+    cy, cx = ys - y0 + oy, xs - x0 + ox
+    inside = (cy >= 0) & (cy < ch) & (cx >= 0) & (cx < cw)
+    extension = np.ones((h, w), bool)
+    extension[y0:y0 + h // 2, x0:x0 + w // 2] = False
+    drawn = np.zeros((h, w), bool)
+    drawn[inside] = result.mask[cy[inside], cx[inside]] == MaskValue.RENDERED
+    covered = extension & drawn
+    ours = np.zeros_like(photo)
+    ours[inside] = result.image[cy[inside], cx[inside]]
+    bicubic = np.clip(cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC), 0, 1)
+
+    def psnr(image, where):
+        return -10 * np.log10(np.mean((image[where] - photo[where]) ** 2))
+
+    print(f"zoom 3x: coverage {100 * covered.sum() / extension.sum():.2f} % of the extension (bar >= 99 %), "
+          f"PSNR {psnr(ours, covered):.2f} dB, bicubic {psnr(bicubic, covered):.2f} dB on the same pixels "
+          f"({psnr(bicubic, extension):.2f} dB on all of the extension)")
+    if save:
+        save.mkdir(parents=True, exist_ok=True)
+        write_png(save / "zoom_canvas.png", result.image)
+
+
+def smooth_pair(w: int, h: int) -> Scene:
+    """Two views 0.6 apart of a slanted wall with a bump and a box in front of it."""
+    K = intrinsics(0.9 * w, w, h)
+    rng = np.random.default_rng(0)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    depth = 6.0 + 2.0 * u / w + 0.5 * np.sin(v / h * 6.0)
+    depth = np.where((abs(u - w / 2) < w / 10) & (abs(v - h / 2) < h * 0.15), 3.0, depth).astype(np.float32)
+    return Scene([View(rng.uniform(0, 1, (h, w, 3)).astype(np.float32), Camera(K, np.eye(3), [-shift, 0, 0], w, h),
+                       depth, np.ones((h, w), np.float32)) for shift in (0.0, 0.6)])
+
+
+def speed() -> None:
+    for w, h in ((1224, 816), (3000, 2000)):
+        scene = smooth_pair(w, h)
+        for backend in ("gl", "numpy"):
+            render_to_canvas(scene, raster_backend=backend)
+            times = []
+            for _ in range(3):
+                start = time.perf_counter()
+                render_to_canvas(scene, raster_backend=backend)
+                times.append(time.perf_counter() - start)
+            print(f"render {w}x{h} pair, {backend}: {1000 * min(times):.0f} ms")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--save", type=Path, default=None)
+    parser.add_argument("--only", nargs="*", default=["fountain", "zoom", "speed"])
+    args = parser.parse_args()
+    if "zoom" in args.only:
+        zoom(args.data, args.save)
+    if "fountain" in args.only:
+        fountain(args.data, args.save)
+    if "speed" in args.only:
+        speed()
+
+
+if __name__ == "__main__":
+    main()

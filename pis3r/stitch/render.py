@@ -1,0 +1,322 @@
+"""Rendering every view's surface into the reference camera with one z-buffer.
+
+Each view but the reference becomes its cut mesh (:mod:`pis3r.mesh`); the triangles
+go into the reference camera, and at every canvas pixel the nearest surface wins
+(:mod:`pis3r.stitch.raster`). The rasteriser returns, per pixel, the sub-pixel
+position in the winning view's full-resolution image that the surface shows there;
+the colour is sampled there (backward mapping, ``cv2.remap``), so a magnified view is
+interpolated, not blocky, and no cracks open between its samples. The reference's
+own pixels are copied verbatim. The canvas is the reference camera with a larger
+image: its principal point is shifted by ``ref_offset`` (the canvas pixel of the
+reference's pixel (0, 0)).
+
+Which surfaces enter the canvas (on top of the mesh's cut rule):
+- triangles with a vertex nearer to the reference camera than ``MIN_RELATIVE_DEPTH``
+  times the median depth (numerically on the camera plane);
+- triangles that face away from the reference camera (their winding flips: the
+  reference would see the back of the surface the view photographed);
+- triangles stretched more than ``MAX_STRETCH`` times: their magnification (linear: the
+  square root of canvas area over source area, in full-resolution pixels) divided by
+  the focal ratio ``f_ref / f_view``. A view taken with a shorter focal or fewer pixels
+  is magnified as a whole and stays (it is all there is of it, sampled bicubically);
+  what is dropped is stretch from geometry: a surface the view saw close-up or at a
+  grazing angle, blown up where the reference sees it. With the eleven fountain views
+  the outermost one (54 degrees from the reference) is stretched 3.5-4.5x over a
+  plane its depth extrapolates: without this rule it takes 40 % of the canvas and
+  grows it toward the cap, with it 4 %. The limit trades that against two-view
+  coverage (3.0 lost 4 points of extension on ela-REW_palace, 3.5 loses 3; 4.0 keeps
+  12 % of the fountain canvas for that view). Their counts are in ``Canvas.surfaces``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import cv2
+import numpy as np
+
+from pis3r.camera import Camera
+from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
+from pis3r.scene import Scene
+from pis3r.stitch.blend import BAND_FRACTION
+from pis3r.stitch.raster import Raster, Triangles, rasterise
+
+# Points closer than this (relative to the median scene depth) are numerically on
+# the camera plane: their projection explodes, so their triangles are dropped.
+MIN_RELATIVE_DEPTH = 1e-3
+# Triangles stretched more than this (linear magnification over the focal ratio) are dropped.
+MAX_STRETCH = 3.5
+# Canvas pixels sampled per view to estimate its exposure gain.
+GAIN_SAMPLES = 50_000
+# The canvas is at most this many times the reference's width and height.
+DEFAULT_MAX_CANVAS_SCALE = 3.0
+# Grid blocks deep inside the reference are drawn this many to a side as one (see
+# _faces_coarse_under_reference).
+UNDER_REFERENCE_STEP = 8
+# Colour sampling of the sources (cv2.remap): bicubic keeps magnified views sharp.
+COLOUR_INTERPOLATION = cv2.INTER_CUBIC
+
+
+@dataclass
+class SurfaceCounts:
+    """Triangles of one view's mesh: ``meshed`` (two per grid block), ``cut`` by the mesh's
+    cut rule (missing depth, grazing angle), ``behind`` (a vertex on or behind the
+    reference's camera plane), ``back_facing``, ``stretched`` (beyond ``MAX_STRETCH``),
+    and ``rendered`` (the rest, drawn into the z-buffer)."""
+
+    view: int
+    meshed: int
+    cut: int
+    behind: int
+    back_facing: int
+    stretched: int
+    rendered: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Canvas:
+    """The z-buffered rendering of a scene onto the reference camera.
+
+    ``image``: ``(H, W, 3)`` float32; ``depth``: ``(H, W)`` float32 z in the reference
+    frame (``inf`` where empty); ``source``: ``(H, W)`` int16 index of the view whose
+    surface won (``-1`` where empty); ``camera``: the canvas camera; ``ref_offset``:
+    ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
+    ``dropped_points``: mesh vertices of rendered triangles that fell outside the capped
+    canvas; ``under_reference``: ``(h, w, 3)`` what the other views put where the
+    reference (``h x w``) is pasted, and ``under_valid`` ``(h, w)`` bool where they put
+    anything (the overlap that blending across the reference border works from);
+    ``surfaces``: per other view, which of its triangles entered the canvas
+    (:class:`SurfaceCounts`; ``[s.to_dict() for s in surfaces]`` for a report).
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    source: np.ndarray
+    camera: Camera
+    ref_offset: tuple[int, int]
+    dropped_points: int
+    under_reference: np.ndarray | None = None
+    under_valid: np.ndarray | None = None
+    surfaces: list[SurfaceCounts] = field(default_factory=list)
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """``(H, W)`` bool: pixels that received a surface (or the reference itself)."""
+        return self.source >= 0
+
+
+@dataclass
+class _ViewSurface:
+    """One view's triangles in the reference camera: ``xy`` ``(N, 2)`` reference pixels,
+    ``z`` ``(N,)`` reference depth, ``uv`` ``(N, 2)`` source pixels, ``faces`` ``(M, 3)``."""
+
+    view: int
+    xy: np.ndarray
+    z: np.ndarray
+    uv: np.ndarray
+    faces: np.ndarray
+
+
+def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
+    """Every other view's cut mesh in the reference camera (the rules of the module
+    docstring applied), and its :class:`SurfaceCounts`."""
+    ref = scene.views[ref_index].camera
+    meshes = []
+    for index, view in enumerate(scene.views):
+        if index == ref_index:
+            continue
+        mesh = view_mesh(view, MESH_MAX_SIDE)
+        cam = view.camera
+        # view camera -> reference camera: x_ref = R_rel x_view + t_rel with R_rel = R_ref R_view^T
+        R_rel = ref.R @ cam.R.T
+        t_rel = ref.t - R_rel @ cam.t
+        points = mesh.points @ R_rel.T.astype(np.float32) + t_rel.astype(np.float32)
+        meshes.append((index, mesh, points, ref.focal / cam.focal))
+    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes] or [[]])
+    positive = z_all[z_all > 0]
+    min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
+
+    surfaces, counts = [], []
+    for index, mesh, points, focal_ratio in meshes:
+        z = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
+                           ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
+        in_front = np.all(grid_corners(z > min_z), axis=0)
+        canvas_area = signed_area(*grid_corners(xy))
+        front_facing = canvas_area > 0
+        # Both triangles of a grid block have half its area in source pixels.
+        source_area = 0.5 * np.diff(mesh.ys)[:, None] * np.diff(mesh.xs)[None, :]
+        modest = canvas_area <= (max_stretch * focal_ratio) ** 2 * source_area
+        kept = mesh.keep & in_front
+        behind = int((mesh.keep & ~in_front).sum())
+        back_facing = int((kept & ~front_facing).sum())
+        kept &= front_facing
+        stretched = int((kept & ~modest).sum())
+        kept &= modest
+        counts.append(SurfaceCounts(
+            view=index, meshed=mesh.keep.size, cut=mesh.cut, behind=behind, back_facing=back_facing,
+            stretched=stretched, rendered=int(kept.sum()),
+        ))
+        faces = _faces_coarse_under_reference(kept, xy, ref.width, ref.height)
+        surfaces.append(_ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, faces))
+    return surfaces, counts
+
+
+def _faces_coarse_under_reference(kept: np.ndarray, xy: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(M, 3)`` faces of the ``kept`` ``(2, rows-1, cols-1)`` triangles, with every
+    ``UNDER_REFERENCE_STEP``-square of whole grid blocks that lands deep inside the
+    reference (``xy`` ``(rows, cols, 2)`` in its pixels, ``width x height``) drawn as two
+    triangles instead. The reference's pixels cover them; they only tell exposure gains
+    and blending what the other views see there, which needs no fine geometry, and most
+    of a view's triangles are there. "Deep" keeps the blend band at the border fine."""
+    step = UNDER_REFERENCE_STEP
+    margin = BAND_FRACTION * min(width, height) + 2
+    inside = ((xy[..., 0] >= margin) & (xy[..., 0] <= width - 1 - margin)
+              & (xy[..., 1] >= margin) & (xy[..., 1] <= height - 1 - margin))
+    # A convex window holds a block when it holds the block's four corners.
+    block = kept[0] & kept[1] & np.all(grid_corners(inside), axis=(0, 1))
+    rows, cols = block.shape[0] // step, block.shape[1] // step
+    coarse = block[: rows * step, : cols * step].reshape(rows, step, cols, step).all(axis=(1, 3))
+    covered = np.zeros(block.shape, bool)
+    covered[: rows * step, : cols * step] = np.repeat(np.repeat(coarse, step, axis=0), step, axis=1)
+    fine = grid_faces(kept & ~covered)
+    return np.concatenate([fine, grid_faces(np.stack([coarse, coarse]), step, xy.shape[1])])
+
+
+def _window(coords: np.ndarray, ref_size: int, limit: int) -> tuple[int, int]:
+    """Choose ``[lo, hi)`` along one axis: covers ``[0, ref_size)`` and as many
+    projected vertex coordinates ``(N,)`` as possible within ``limit`` pixels."""
+    if coords.size == 0:
+        return 0, ref_size
+    lo = int(min(0, np.floor(coords.min())))
+    hi = int(max(ref_size, np.ceil(coords.max()) + 1))
+    if hi - lo <= limit:
+        return lo, hi
+    # Slide a window of `limit` pixels that always contains the reference and
+    # keep the start that holds the most vertices (a 1-D histogram prefix sum).
+    hist = np.bincount(np.clip(np.rint(coords).astype(np.int64) - lo, 0, hi - lo - 1), minlength=hi - lo)
+    prefix = np.concatenate([[0], np.cumsum(hist)])
+    starts = np.arange(max(lo, ref_size - limit), 1)
+    counts = prefix[np.minimum(starts - lo + limit, hi - lo)] - prefix[starts - lo]
+    start = int(starts[int(np.argmax(counts))])
+    return start, start + limit
+
+
+def _sample_points(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``(N, 3)``: ``image`` sampled at ``uv`` ``(N, 2)`` exactly as the canvas samples it."""
+    # remap takes a map of at most 32767 columns: lay the points out in rows of 4096.
+    n = len(uv)
+    padded = np.zeros((-(-n // 4096) * 4096, 2), np.float32)
+    padded[:n] = uv
+    grid = padded.reshape(-1, 4096, 2)
+    return cv2.remap(image, grid[..., 0], grid[..., 1], COLOUR_INTERPOLATION,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
+
+
+def _exposure_gains(scene: Scene, raster: Raster, indices: list[int], window, ref_image: np.ndarray) -> np.ndarray:
+    """``(len(indices), 3)`` float32: per layer, the robust per-channel gain that maps its
+    view's colours onto the reference where its surface lands inside it (``window``: the
+    reference's slices in the canvas), so a different exposure does not show as a frame."""
+    layer, uv = raster.layer[window].ravel(), raster.uv[window].reshape(-1, 2)
+    gains = np.ones((len(indices), 3), np.float32)
+    for k, index in enumerate(indices):
+        chosen = np.flatnonzero(layer == k)
+        # A robust median needs far fewer samples than a canvas has pixels.
+        chosen = chosen[:: max(1, len(chosen) // GAIN_SAMPLES)]
+        if len(chosen) < 100:
+            continue
+        ours = _sample_points(scene.views[index].image, uv[chosen])
+        theirs = ref_image.reshape(-1, 3)[chosen]
+        # Saturated or black pixels carry no information about the gain.
+        usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(axis=1)
+        if int(usable.sum()) >= 100:
+            gains[k] = np.clip(np.median(theirs[usable] / ours[usable], axis=0), 0.5, 2.0)
+    return gains
+
+
+def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` float32: at every pixel whose ``raster.layer`` is ``k``, view ``indices[k]``'s
+    full-resolution image sampled at ``raster.uv`` (``cv2.remap``, ``COLOUR_INTERPOLATION``)
+    and scaled by ``gains[k]`` ``(3,)``; 0 where no layer."""
+    image = np.zeros(raster.layer.shape + (3,), np.float32)
+    for k, index in enumerate(indices):
+        mine = raster.layer == k
+        rows, cols = np.flatnonzero(mine.any(axis=1)), np.flatnonzero(mine.any(axis=0))
+        if not rows.size:
+            continue
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        uv = raster.uv[box]
+        sampled = cv2.remap(scene.views[index].image, uv[..., 0], uv[..., 1], COLOUR_INTERPOLATION,
+                            borderMode=cv2.BORDER_REPLICATE)
+        if (gains[k] != 1).any():
+            cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,), dst=sampled)
+        np.copyto(image[box], sampled, where=mine[box][..., None])
+    # Bicubic overshoots at sharp edges; a gain may push past white.
+    return np.clip(image, 0.0, 1.0, out=image)
+
+
+def render_to_canvas(
+    scene: Scene,
+    ref_index: int = 0,
+    max_canvas_scale: float = DEFAULT_MAX_CANVAS_SCALE,
+    device: str = "cpu",
+    match_exposure: bool = True,
+    raster_backend: str = "auto",
+    max_stretch: float = MAX_STRETCH,
+) -> Canvas:
+    """Render every view's surface of ``scene`` into camera ``ref_index`` on a canvas that
+    grows to hold them (capped at ``max_canvas_scale`` times the reference's size).
+
+    The reference's own pixels are copied verbatim into the canvas. With
+    ``match_exposure``, every other view's colours are scaled per channel by the gain
+    that matches them to the reference where they land inside it, so a different
+    exposure does not show as a frame around the reference. ``raster_backend``:
+    ``"auto"`` (OpenGL where an EGL context can be created, else numpy), ``"gl"`` or
+    ``"numpy"`` (:mod:`pis3r.stitch.raster`). ``max_stretch``: see the module docstring
+    (``np.inf`` keeps every surface). ``device`` is accepted for the stage
+    contract: OpenGL runs on whatever device EGL offers (a GPU where present), and the
+    rest of the stage is OpenCV/numpy on the CPU.
+    """
+    del device  # see the docstring: OpenGL picks its own device
+    ref_view = scene.views[ref_index]
+    ref = ref_view.camera
+    surfaces, counts = _surfaces(scene, ref_index, max_stretch)
+
+    vertices = [s.xy[used_vertices(s.faces, len(s.xy))] for s in surfaces]
+    xy = np.concatenate(vertices) if vertices else np.zeros((0, 2), np.float32)
+    x0, x1 = _window(xy[:, 0], ref.width, int(round(max_canvas_scale * ref.width)))
+    y0, y1 = _window(xy[:, 1], ref.height, int(round(max_canvas_scale * ref.height)))
+    width, height = x1 - x0, y1 - y0
+    dropped = int(((xy[:, 0] < x0 - 0.5) | (xy[:, 0] > x1 - 0.5) | (xy[:, 1] < y0 - 0.5) | (xy[:, 1] > y1 - 0.5)).sum())
+
+    offset = np.array([x0, y0], np.float32)
+    raster = rasterise([Triangles(s.xy - offset, s.z, s.uv, s.faces) for s in surfaces], width, height,
+                       raster_backend)
+    indices = [s.view for s in surfaces]
+    ox, oy = -x0, -y0
+    window = (slice(oy, oy + ref.height), slice(ox, ox + ref.width))
+    gains = (_exposure_gains(scene, raster, indices, window, ref_view.image) if match_exposure
+             else np.ones((len(indices), 3), np.float32))
+    image = _sample_colours(scene, raster, indices, gains)
+    # Layer -1 (empty) picks the trailing -1.
+    source = np.asarray(indices + [-1], np.int16)[raster.layer]
+    depth = raster.z
+    under_reference, under_valid = image[window].copy(), source[window] >= 0
+    image[window] = ref_view.image
+    source[window] = ref_index
+    depth[window] = np.where(ref_view.valid, ref_view.depth, np.inf)
+    return Canvas(
+        image=image,
+        depth=depth,
+        source=source,
+        camera=ref.shifted(ox, oy, width, height),
+        ref_offset=(ox, oy),
+        dropped_points=dropped,
+        under_reference=under_reference,
+        under_valid=under_valid,
+        surfaces=counts,
+    )
