@@ -116,7 +116,7 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     backend_options = ReconstructOptions(
         focal=options.focal, device=options.device, weights=options.weights, conf_threshold=options.conf_threshold,
         depth_fill=DEFAULT_DEPTH_FILL if options.depth_fill == "auto" else options.depth_fill,
-        model="auto" if options.model == "auto" else options.model,
+        model=options.model if options.model in ("homography", "3d") else "auto",
     )
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))

@@ -30,10 +30,11 @@ def test_band_psnr_rewards_right_pixels_and_charges_uncovered_ones_a_mean_guess(
 
 
 def test_candidates_follow_the_model_and_depth_fill_choices():
-    assert candidates("auto", "auto") == [Candidate("homography"), Candidate("3d", "planar"),
+    assert candidates("band", "auto") == [Candidate("homography"), Candidate("3d", "planar"),
                                           Candidate("3d", "harmonic")]
+    assert candidates("auto", "auto") == []
     assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic")]
-    assert candidates("auto", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic")]
+    assert candidates("band", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic")]
     assert candidates("homography", "planar") == [Candidate("homography")]
 
 
@@ -41,12 +42,13 @@ def test_nothing_to_choose_runs_no_band_test():
     photos = [Photo(np.zeros((8, 8, 3), np.float32), "a"), Photo(np.zeros((8, 8, 3), np.float32), "b")]
     forced = choose_model(photos, "classical", ReconstructOptions(), model="homography")
     assert forced.chosen == Candidate("homography") and forced.scores == ()
-    assert choose_model(photos, "vggt", ReconstructOptions()).chosen is None
+    assert choose_model(photos, "classical", ReconstructOptions(), model="auto").chosen is None
+    assert choose_model(photos, "vggt", ReconstructOptions(), model="band").chosen is None
 
 
 def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candidate(small_pair):
     # Two crops of one photo: the target is exactly a shift of the reference's image plane.
-    result = pis3r.stitch(list(small_pair), backend="classical")
+    result = pis3r.stitch(list(small_pair), backend="classical", model="band", depth_fill="auto")
     choice = result.report["model_choice"]
     assert [(c["model"], c["depth_fill"]) for c in choice["candidates"]] == [
         ("homography", None), ("3d", "planar"), ("3d", "harmonic")]
@@ -63,6 +65,8 @@ def test_forcing_a_model_skips_the_band_test(small_pair):
     result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
     assert result.report["model_choice"]["candidates"] == []
     assert result.report["model_choice"]["chosen"] == {"model": "3d", "depth_fill": "harmonic"}
+    default = pis3r.stitch(list(small_pair), backend="classical")
+    assert default.report["model_choice"] == {**default.report["model_choice"], "chosen": None, "candidates": []}
 
 
 def test_a_candidate_that_cannot_stitch_the_band_scores_minus_infinity():

@@ -27,7 +27,7 @@ from pis3r.errors import Pis3rError, one_line
 from pis3r.io import Photo, downscaled
 from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.propagate import DEPTH_FILLS
+from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL, DEPTH_FILLS
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.render import render_to_canvas
 
@@ -35,12 +35,16 @@ from pis3r.stitch.render import render_to_canvas
 BAND_FRACTION = 0.15
 # The band test runs with every photo's longest side at most this (pixels).
 BAND_WORK_SIDE = 480
-# ``auto``: the band test chooses; the others force a model (see module docstring).
-MODEL_CHOICES = ("auto", "homography", "3d")
+# ``auto``: the backend's own degeneracy test (one homography explains the matches, or
+# not); ``band``: the held-back band chooses among every candidate; the others force one.
+# ``auto`` stays the default until the band test wins on every parallax class of the crop
+# protocol (today it gains on rotation pairs and loses on slight ones: see the README).
+MODEL_CHOICES = ("auto", "band", "homography", "3d")
 DEFAULT_MODEL = "auto"
-# ``auto`` lets the band test choose the depth fill of the 3-D model too.
-DEPTH_FILL_CHOICES = ("auto", *DEPTH_FILLS)
-DEFAULT_DEPTH_FILL_CHOICE = "auto"
+# ``auto``: the band test chooses the 3-D model's depth fill when one runs (``--model band``
+# or ``3d``), else the default fill.
+DEPTH_FILL_CHOICES = (*DEPTH_FILLS, "auto")
+DEFAULT_DEPTH_FILL_CHOICE = DEFAULT_DEPTH_FILL
 
 
 @dataclass(frozen=True)
@@ -93,10 +97,13 @@ class ModelChoice:
 
 
 def candidates(model: str, depth_fill: str) -> list[Candidate]:
-    """The candidates allowed by the ``--model`` and ``--depth-fill`` choices."""
+    """The candidates allowed by the ``--model`` and ``--depth-fill`` choices (none for
+    ``auto``: the backend decides)."""
+    if model == "auto":
+        return []
     fills = DEPTH_FILLS if depth_fill == "auto" else (depth_fill,)
-    found = [] if model == "3d" else [Candidate("homography")]
-    if model != "homography":
+    found = [Candidate("homography")] if model in ("band", "homography") else []
+    if model in ("band", "3d"):
         found += [Candidate("3d", fill) for fill in fills]
     return found
 
