@@ -40,7 +40,7 @@ def test_pose_only_tables_every_calibrated_pair(tmp_path):
     assert "do not overlap enough" in rows["noise"]["refused"]
     assert float(rows["planes"]["rotation_error_deg"]) < 1.0 and float(rows["planes"]["translation_error_deg"]) < 3.0
     assert rows["planes"]["model"] == "3d" and float(rows["planes"]["gt_focal"]) == ref.K[0, 0]
-    assert "median over 1 reconstructed of 2 pairs" in result.output
+    assert rows["planes"]["warnings"] == "0" and "median over 1 reconstructed of 2 pairs" in result.output
     assert (tmp_path / "out" / "poses.md").read_text().startswith("| case")
 
 

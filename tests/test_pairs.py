@@ -99,7 +99,7 @@ def test_a_plane_seen_with_a_baseline_exports_its_translation():
 def test_a_focal_a_plane_leaves_free_is_the_prior_with_a_warning():
     a, b, _, _ = facade_pair([-1.5, 0.2, 0.5], -8.0)
     pair = ClassicalReconstructor(ReconstructOptions()).cameras(a, b)
-    assert pair.K_a[0, 0] == pytest.approx(1.2 * 480) and pair.focal_source.startswith("prior")
+    assert pair.K_a[0, 0] == pytest.approx(1.2 * 480) and pair.focal_source.startswith("prior-dominated")
     assert any("do not determine the focal length (the matches lie on one plane)" in w for w in pair.warnings)
 
 

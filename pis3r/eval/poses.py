@@ -3,7 +3,9 @@ the GT cameras of every case that has them, without rendering anything.
 
 One row per case: relative rotation error and translation-direction error (degrees,
 :func:`pis3r.eval.geometry.pose_error`), the reference focal found vs the GT one, the model,
-the features used, and the refusal if the pair was refused. Medians are over the pairs that
+the features used, the epipolar inliers, how many warnings the cameras came with (a focal
+the views do not determine, an implausible one, few inliers), and the refusal if the pair
+was refused. Medians are over the pairs that
 were reconstructed; an exported pure rotation (no translation) of a pair whose GT cameras
 have a baseline counts 90 deg of translation error there (an unknown direction is as far
 off as that on average), not a missing value.
@@ -25,7 +27,7 @@ from pis3r.eval.geometry import pose_error
 from pis3r.io import Photo, write_bytes
 
 COLUMNS = ("case", "rotation_error_deg", "translation_error_deg", "focal", "gt_focal", "model", "features",
-           "seconds", "refused")
+           "inliers", "warnings", "seconds", "refused")
 # Translation-direction error counted for a rotation exported where the GT has a baseline.
 MISSING_TRANSLATION_DEG = 90.0
 
@@ -48,8 +50,8 @@ def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
     errors = pose_error(np.hstack([pair.R, pair.t[:, None]]), case)
     if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
         errors["translation_error_deg"] = MISSING_TRANSLATION_DEG
-    return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model,
-            "features": pair.info["features"], "seconds": time.perf_counter() - start}
+    return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model, "features": pair.info["features"],
+            "inliers": pair.info["num_inliers"], "warnings": len(pair.warnings), "seconds": time.perf_counter() - start}
 
 
 def medians(rows: list[dict]) -> dict:
@@ -65,19 +67,25 @@ def medians(rows: list[dict]) -> dict:
             "reconstructed": len(done), "pairs": len(rows)}
 
 
+# Columns of the printed table: title, row key, cell format (right-aligned to the title).
+TABLE = (("rot °", "rotation_error_deg", "{:.2f}"), ("trans °", "translation_error_deg", "{:.2f}"),
+         ("focal", "focal", "{:.0f}"), ("GT focal", "gt_focal", "{:.0f}"), ("model", "model", "{}"),
+         ("features", "features", "{}"), ("inliers", "inliers", "{}"), ("warnings", "warnings", "{}"),
+         ("s", "seconds", "{:.1f}"))
+
+
 def format_table(rows: list[dict]) -> str:
     """The per-pair table and the medians as aligned text (also valid Markdown)."""
     width = max([len(r["case"]) for r in rows] + [4])
-    lines = [f"| {'case':{width}s} | rot ° | trans ° | focal | GT focal | model      | features | s     | refused |",
-             f"|{'-' * (width + 2)}|------:|--------:|------:|---------:|------------|----------|------:|---------|"]
+    sizes = [max(len(title), {"model": 10, "seconds": 5}.get(key, 0)) for title, key, _ in TABLE]
+    lines = ["| " + " | ".join([f"{'case':{width}s}", *(f"{t:>{n}s}" for (t, _, _), n in zip(TABLE, sizes)),
+                                "refused"]) + " |",
+             "|" + "|".join(["-" * (width + 2), *("-" * (n + 1) + ":" for n in sizes), "-" * 9]) + "|"]
     for r in rows:
-        if r["refused"]:
-            lines.append(f"| {r['case']:{width}s} |     – |       – |     – | {r['gt_focal']:8.0f} | –          | –        "
-                         f"| {r['seconds']:5.1f} | {r['refused']} |")
-            continue
-        lines.append(f"| {r['case']:{width}s} | {r['rotation_error_deg']:5.2f} | {r['translation_error_deg']:7.2f} "
-                     f"| {r['focal']:5.0f} | {r['gt_focal']:8.0f} | {r['model']:10s} | {r['features']:8s} "
-                     f"| {r['seconds']:5.1f} |         |")
+        cells = [("–" if r["refused"] and key not in ("gt_focal", "seconds") else fmt.format(r[key]))
+                 for _, key, fmt in TABLE]
+        lines.append("| " + " | ".join([f"{r['case']:{width}s}", *(f"{c:>{n}s}" for c, n in zip(cells, sizes)),
+                                        r["refused"]]) + " |")
     summary = medians(rows)
     lines += ["", f"median over {summary['reconstructed']} reconstructed of {summary['pairs']} pairs: rotation "
               f"{summary['rotation_error_deg']:.2f}°, translation direction {summary['translation_error_deg']:.2f}°"]

@@ -6,7 +6,7 @@ All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -151,15 +151,15 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
         return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
     fit = least_squares(residuals, p0, loss="cauchy", f_scale=scale, max_nfev=300)
-    p = fit.x
-    Rm, tv, Ka, Kb = unpack(p)
+    Rm, tv, Ka, Kb = unpack(fit.x)
     side_a = 2 * max(K_a[:2, 2]) + 1
-    if not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
-        p = p0
-        Rm, tv, Ka, Kb = unpack(p)
+    if refine_focal and not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
+        # A runaway, not a lens: the pose alone, at the starting focal.
+        fixed = refine_pose(matches, R, t, K_a, K_b)
+        return replace(fixed, prior_cost=_cauchy(np.array([prior_residual(p0) / scale])))
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
     _, Rc, tc, _ = cv2.recoverPose(_skew(tv) @ Rm, na, nb, np.eye(3))
-    prior_cost = _cauchy(np.array([prior_residual(p) / scale])) if refine_focal else 0.0
+    prior_cost = _cauchy(np.array([prior_residual(fit.x) / scale])) if refine_focal else 0.0
     return PoseFit(Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, epipolar_cost(matches, Rm, tv, Ka, Kb), prior_cost)
 
 

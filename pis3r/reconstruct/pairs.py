@@ -2,15 +2,17 @@
 it, the focal and the relative pose exported for it.
 
 1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix; with fewer than
-   ``AFFINE_RETRY_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
+   ``FEW_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
    inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
 3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
-   the homography, Brown–Lowe, refined; a known focal is checked against it) transfers its
-   points about as well as the homography. Otherwise it has a baseline: focal and pose come
-   from the epipolar geometry as for 3-D pairs, and the exported pose is the homography's
-   decomposition that agrees with it (so the rendered plane is the homography exactly).
+   the homography, Brown–Lowe, refined; an EXIF focal is checked against it) transfers its
+   points about as well as the homography; it is rendered as the homography's plane nearest
+   that rotation, or as the rotation itself where the plane's translation is negligible.
+   Otherwise it has a baseline: focal and pose come from the epipolar geometry as for 3-D
+   pairs, and the exported pose is the homography's decomposition the epipolar inliers
+   support (so the rendered plane is the homography exactly).
 4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
    refined jointly over all inliers (robust Sampson, weak prior). A focal the matches do not
    determine, or one outside ordinary lenses, is a warning.
@@ -23,6 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match
 from pis3r.io import Photo
@@ -36,9 +39,12 @@ from pis3r.reconstruct.focal import (
     rotation_focal,
 )
 
-# Fewer epipolar inliers than this from SIFT: try ASIFT too. Below it a pose rests on too
-# few matches to be trusted (and the pair is often refused outright).
-AFFINE_RETRY_INLIERS = 50
+# Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
+# SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
+FEW_INLIERS = 50
+# ASIFT's matches replace SIFT's only with at least this many epipolar inliers: among its
+# hundreds of matches, a dozen agree on some fundamental matrix by chance.
+MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 # Share of epipolar inliers one homography must explain for the pair to count as planar.
 PLANAR_FRACTION = 0.9
 # A rotation explains a homography pair when its median transfer error on the homography's
@@ -46,6 +52,8 @@ PLANAR_FRACTION = 0.9
 # the rotation has 4 parameters to the homography's 8, so it leaves a little more.
 ROTATION_FIT_FACTOR = 1.5
 ROTATION_FIT_SLACK_PX = 0.3
+# |t| / plane distance below which a rotation's homography is rendered as the rotation.
+ROTATION_TRANSLATION = 0.02
 # The focal counts as determined by the matches when moving it by this factor either way
 # (pose re-fitted) raises the robust Sampson cost by at least FOCAL_EVIDENCE (about what
 # three matches 1 px off their epipolar lines cost).
@@ -80,14 +88,15 @@ class ConsistentMatches:
 
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures) -> ConsistentMatches:
     """SIFT matches of ``a`` in ``b`` and their epipolar inliers; when fewer than
-    ``AFFINE_RETRY_INLIERS``, ASIFT's instead if it finds more."""
+    ``FEW_INLIERS``, ASIFT's instead if it finds more, and at least ``MIN_AFFINE_INLIERS``."""
     w, h = a.photo.width, a.photo.height
     found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
-    if found.inliers.sum() >= AFFINE_RETRY_INLIERS:
+    if found.inliers.sum() >= FEW_INLIERS:
         return found
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
     affine = _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
-    return affine if affine.inliers.sum() > found.inliers.sum() else found
+    count = affine.inliers.sum()
+    return affine if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
 
 
 def _epipolar(matches: Matches, width: int, height: int, detector: str) -> ConsistentMatches:
@@ -100,10 +109,11 @@ class PairGeometry:
     """Two-view geometry of a reference a and another photo b, ``x_b = R x_a + t``.
 
     ``model``: ``homography`` (rendered by the homography ``H`` ``(3, 3)`` a -> b) or ``3d``;
-    ``K_a``, ``K_b`` ``(3, 3)``; ``R`` ``(3, 3)``; ``t`` ``(3,)``: zero for a rotation, in units
-    of the plane's distance for a plane seen with a baseline (``plane``: its normal ``n``
-    ``(3,)``, ``n . X = 1`` in a), unit length for 3-D. ``inliers``: the epipolar inliers.
-    ``info``: report-only details (features, focal relation and evidence)."""
+    ``K_a``, ``K_b`` ``(3, 3)``; ``R`` ``(3, 3)``; ``t`` ``(3,)``: for the homography model in
+    units of the distance of its plane (``plane``: the normal ``n`` ``(3,)``, ``n . X = 1`` in
+    a), or zero with ``plane`` ``None`` (a rotation rendered as such); unit length for 3-D.
+    ``inliers``: the epipolar inliers. ``info``: report-only details (features, focal
+    relation and evidence)."""
 
     model: str
     model_reason: str
@@ -130,47 +140,54 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
-        raise NotEnoughOverlapError(f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches")
+        raise NotEnoughOverlapError(
+            f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches")
     parallax = parallax_from_matches(matches, float(np.hypot(*size_a)))
     inliers = matches.subset(f_inl)
     H, h_inl = geometry.homography(inliers, *size_a)
     if H is None:
         raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
     hypotheses = focal_hypotheses(size_a, size_b, focal_ref, focal_other)
-    common = {"parallax": parallax, "H": H, "inliers": inliers, "num_matches": len(matches)}
-    info = {"features": found.detector, "num_inliers": int(f_inl.sum())}
+    doubts = [f"only {int(f_inl.sum())} matches of {other.name} agree on one geometry: its camera may be wrong"
+              ] if f_inl.sum() < FEW_INLIERS else []
+
+    def result(model, reason, K_a, K_b, R, t, plane, source, warnings, details):
+        return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
+                            tuple(doubts + warnings),
+                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details})
+
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
     planar = parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION
     why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
-    if planar:
-        rotation = _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source, focal_is_final)
-        if rotation is not None:
-            fit, source, warnings, details = rotation
-            return PairGeometry("homography", f"{why}: a rotation", K_a=fit.K_a, K_b=fit.K_b, R=fit.R,
-                                t=np.zeros(3), plane=None, focal_source=source, warnings=tuple(warnings),
-                                info={**info, **details}, **common)
+    rotation = _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
+                         focal_is_final) if planar else None
+    if rotation is not None:
+        fit, source, warnings, details = rotation
+        # The homography keeps rendering the pair: as its plane (exactly) unless the
+        # translation it resolves is negligible, then as the rotation (constant depth).
+        R, t, n = min(geometry.homography_decompositions(H, fit.K_a, fit.K_b, inliers.pts_a),
+                      key=lambda solution: rotation_angle_deg(solution[0] @ fit.R.T))
+        if np.linalg.norm(t) < ROTATION_TRANSLATION:
+            R, t, n = fit.R, np.zeros(3), None
+        return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, warnings, details)
     # Matches on one plane (within noise, or all but a few) leave the focal free.
     plane_only = planar and (parallax.parallax_class == "rotation" or (~h_inl).sum() < MIN_MATCHES)
     pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only)
     if pose is None:
-        planar, why = True, "no essential matrix fits the matches; falling back to the homography model"
         hypothesis = hypotheses[0]
-        focal = hypothesis.focal_a or hypothesis.prior_a
-        K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+        K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
         source = known_source if hypothesis.focal_a else "prior (1.2 x longest side: no essential matrix fits)"
-        warnings, details = [why], {"focal_relation": hypothesis.name}
-    else:
-        fit, source, warnings, details = pose
-        K_a, K_b = fit.K_a, fit.K_b
+        why = "no essential matrix fits the matches; falling back to the homography model"
+        R, t, n = _supported_decomposition(H, K_a, K_b, inliers)
+        return result("homography", why, K_a, K_b, R, t, n, source, [why], {"focal_relation": hypothesis.name})
+    fit, source, warnings, details = pose
     if not planar:
-        return PairGeometry("3d", f"parallax level {parallax.level:.2f} %: full 3-D model", K_a=K_a, K_b=K_b,
-                            R=fit.R, t=fit.t, plane=None, focal_source=source, warnings=tuple(warnings),
-                            info={**info, **details}, **common)
-    R, t, n = _supported_decomposition(H, K_a, K_b, inliers)
-    reason = f"{why}: a plane seen with a baseline (pose: the homography's decomposition the epipolar geometry supports)"
-    return PairGeometry("homography", reason, K_a=K_a, K_b=K_b, R=R, t=t, plane=n, focal_source=source,
-                        warnings=tuple(warnings), info={**info, **details}, **common)
+        return result("3d", f"parallax level {parallax.level:.2f} %: full 3-D model", fit.K_a, fit.K_b, fit.R,
+                      fit.t, None, source, warnings, details)
+    R, t, n = _supported_decomposition(H, fit.K_a, fit.K_b, inliers)
+    reason = f"{why}: a plane seen with a baseline (pose: the decomposition the epipolar inliers support)"
+    return result("homography", reason, fit.K_a, fit.K_b, R, t, n, source, warnings, details)
 
 
 def _rotation(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
@@ -191,7 +208,8 @@ def _rotation(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, 
         elif not hypothesis.focal_a:
             starts.append((hypothesis.prior_a, "prior"))
         for focal, kind in starts:
-            fit = fit_rotation(h_inliers, *hypothesis.intrinsics(focal, size_a, size_b), refine_focal=kind == "calibrated")
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            fit = fit_rotation(h_inliers, K_a, K_b, refine_focal=kind == "calibrated")
             fits.append((float(np.median(fit.residuals)), kind, hypothesis, fit))
     fitting = [candidate for candidate in fits if candidate[0] <= tolerance]
     if not fitting:
@@ -223,8 +241,8 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
     the focal hypotheses and starting focals (refined jointly), or ``None``. A later
     hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
     noisy matches, a wrong focal relation fits them a little better about as often as not.
-    An unknown focal the matches do not determine (``plane_only``: they lie on one plane)
-    is the prior, with a warning."""
+    An unknown focal the matches do not determine comes with a warning: it is where the
+    weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``)."""
     best = None
     for hypothesis in hypotheses:
         starts = ([hypothesis.focal_a] if hypothesis.focal_a else
@@ -247,15 +265,15 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
         return fit, known_source, [], details
     evidence = 0.0 if plane_only else _focal_evidence(inliers, fit)
     details["focal_evidence"] = evidence
-    if evidence < FOCAL_EVIDENCE:
-        # The matches leave the focal free: say so, and take the prior rather than wherever
-        # the fit drifted (the pose is re-fitted to it).
+    if plane_only:
+        # A plane tells nothing about the focal: take the prior, not where the fit drifted.
         K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
         fit = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+    if evidence < FOCAL_EVIDENCE:
         why = ("the matches lie on one plane" if plane_only else
                f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
-        return fit, "prior (1.2 x longest side: the two views do not determine it)", [
-            f"these two views do not determine the focal length ({why}); assumed {hypothesis.prior_a:.0f} px: "
+        return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
+            f"these two views do not determine the focal length ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
             "the exported cameras depend on it, pass --focal if you know it"], details
     focal = float(fit.K_a[0, 0])
     warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
