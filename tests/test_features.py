@@ -13,7 +13,7 @@ from pis3r.eval.registration import (
     judge_features,
     match_canvases,
 )
-from pis3r.features import detect, match, to_gray_u8
+from pis3r.features import Features, detect, detect_affine, match, to_gray_u8
 from pis3r.io import to_uint8
 
 
@@ -95,3 +95,30 @@ def test_mutual_matching_keeps_a_subset_of_one_way_matches_and_needs_rootsift(pa
     with pytest.raises(ValueError, match="RootSIFT"):
         match(a, plain)
     assert len(match(a, detect(np.zeros((50, 50, 3), np.float32)))) == 0  # nothing to match
+
+
+def test_a_point_detected_twice_matches_when_the_second_best_must_lie_elsewhere(pair):
+    """ASIFT finds a point once per simulated view: its copies must not fail the ratio test."""
+    a, b = detect(pair[0]), detect(pair[1])
+    twice = Features(np.vstack([b.points, b.points]), np.vstack([b.descriptors, b.descriptors]))
+    assert len(match(a, twice)) == 0  # the copy is the second best: ratio 1
+    plain, distinct = match(a, b), match(a, twice, distinct_px=1.0)
+    assert len(plain) > 50
+    assert {tuple(p) for p in distinct.pts_a} == {tuple(p) for p in plain.pts_a}
+
+
+def test_approximate_neighbours_find_almost_every_exact_match(pair):
+    a, b = detect(pair[0]), detect(pair[1])
+    exact, approximate = match(a, b), match(a, b, approximate=True)
+    common = {tuple(p) for p in exact.pts_a} & {tuple(p) for p in approximate.pts_a}
+    assert len(common) >= 0.85 * len(exact) and len(approximate) <= 1.05 * len(exact)
+
+
+def test_affine_detection_returns_full_resolution_rootsift_points():
+    photo = data.astronaut().astype(np.float32) / 255.0  # 512 px, detected at 256
+    features = detect_affine(photo, max_side=256)
+    plain = detect(photo, max_side=256)
+    assert len(features.points) > 2 * len(plain.points) and features.root_sift
+    # (points found in tilted views map back to within a few pixels of the image)
+    assert features.points.min() > -4 and features.points.max() < 516 and features.points.max() > 480
+    np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-5)

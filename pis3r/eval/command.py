@@ -27,12 +27,26 @@ DEFAULT_METHODS = "pis3r,opencv,opencv-scans,stitching,apap"
 @click.option("--timeout", type=click.FloatRange(1.0), default=300.0, show_default=True,
               help="Seconds one method may take on one pair; beyond, it counts as a failure.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet):
+@click.option("--pose-only", is_flag=True,
+              help="Only reconstruct (classical backend, no rendering): the exported cameras against the GT "
+                   "cameras of every case that has them; prints a table, writes OUTDIR/poses.md and poses.csv.")
+def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet, pose_only):
     """Evaluate stitchers on DATA: a `pis3r synth` output or a folder of pair folders
     (ref.*, tgt.*; the crop protocol makes their ground truth). Finished case x method
     results are cached in OUTDIR and skipped when the command is run again."""
     from pis3r.eval.cases import discover_cases
     from pis3r.eval.margins import per_pair_table
+
+    if pose_only:
+        from pis3r.eval.poses import evaluate_pose, format_table, write_pose_report
+
+        rows = [row for row in (evaluate_pose(spec, crop) for spec in discover_cases(data)) if row is not None]
+        if not rows:
+            raise InputError(f"{data}: no case has GT cameras")
+        click.echo(format_table(rows))
+        for path in write_pose_report(rows, outdir):
+            click.echo(str(path))
+        return
     from pis3r.eval.report import write_report
     from pis3r.eval.runner import CASE_TASK, EvalConfig, run_evaluation
 

@@ -1,10 +1,12 @@
-"""Two-view geometry from matches: focal self-calibration, relative pose, and the
-degeneracy test (one homography explains everything -> rotation/plane model).
+"""Two-view geometry from matches: robust fits, the relative pose with its focal refined,
+the homography's decompositions, triangulation.
 
 All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -17,10 +19,12 @@ from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamen
 
 # Added to the Sampson denominator so that the pose refinement's residuals stay finite.
 SAMPSON_EPS = 1e-12
-# Fallback focal when neither the user, EXIF nor self-calibration gives one:
-# 1.2 x the longest side (about 45 deg horizontal field of view), COLMAP's prior.
-FALLBACK_FOCAL_FACTOR = 1.2
-FOCAL_RANGE = (0.3, 5.0)  # plausible focal / longest side
+# Focal / longest side a refinement may reach; beyond, it is undone (a runaway, not a lens).
+FOCAL_RANGE = (0.3, 5.0)
+# Weight of the log-normal focal prior, in Sampson pixels per unit of log focal: a factor
+# 2 off the prior costs about as much as three matches 1 px off their epipolar lines, so it
+# decides only where the matches leave the focal free.
+FOCAL_PRIOR_WEIGHT = 3.0
 
 
 def _pixel_scale(width: int, height: int) -> float:
@@ -42,48 +46,26 @@ def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | 
     return fit_homography(matches.pts_a, matches.pts_b, 2.0 * _pixel_scale(width, height), RECONSTRUCTION)
 
 
-def focal_candidates(matches: Matches, width: int, height: int) -> list[float]:
-    """Starting focals for self-calibration, most plausible first.
+def focal_candidates(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, int],
+                     prior: float, ratio: float) -> list[float]:
+    """Starting focals of the reference (``focal_b = ratio * focal_a``) for self-calibration,
+    most plausible first.
 
-    Scans f over typical lenses (0.5 to 3 x the longest side); for each, an essential
-    matrix is fitted with MAGSAC++ at a fixed pixel threshold and its inliers are
-    counted. The candidates are the best-scoring focals and the prior
-    (``FALLBACK_FOCAL_FACTOR``); the caller refines each and keeps the best fit,
-    since two views often leave local minima along the focal.
+    Scans f over typical lenses (0.4 to 2.5 x the ``prior``); for each, an essential matrix
+    is fitted with MAGSAC++ at a fixed pixel threshold and its inliers are counted. The
+    candidates are the best-scoring focals and the prior; the caller refines each and keeps
+    the best fit, since two views often leave local minima along the focal.
     """
-    side = max(width, height)
-    scan = np.geomspace(0.5, 3.0, 13) * side
+    scan = np.geomspace(0.4, 2.5, 13) * prior
     counts = []
+    threshold_px = 1.0 * _pixel_scale(*size_a)
     for f in scan:
-        K = intrinsics(f, width, height)
-        na, nb = _normalised(K, matches.pts_a), _normalised(K, matches.pts_b)
-        threshold = 1.0 * _pixel_scale(width, height) / f
-        _, inliers = fit_essential(na, nb, threshold, FOCAL_SCAN)
+        na = _normalised(intrinsics(f, *size_a), matches.pts_a)
+        nb = _normalised(intrinsics(ratio * f, *size_b), matches.pts_b)
+        _, inliers = fit_essential(na, nb, threshold_px / f, FOCAL_SCAN)
         counts.append(int(inliers.sum()))
     ranked = [float(scan[i]) for i in np.argsort(-np.array(counts), kind="stable")[:3]]
-    return ranked + [FALLBACK_FOCAL_FACTOR * side]
-
-
-def focal_from_homography(H: np.ndarray, width: int, height: int) -> float | None:
-    """Focal of a camera rotating about its centre, from the induced homography a -> b.
-
-    For the right f, ``K^-1 H K`` is a scaled rotation; scan f and keep the one whose
-    normalised ``M M^T`` is closest to the identity. None when undetermined.
-    """
-    side = max(width, height)
-
-    def deviation(f):
-        K = intrinsics(f, width, height)
-        M = np.linalg.inv(K) @ H @ K
-        M = M / np.cbrt(np.linalg.det(M))
-        return float(np.linalg.norm(M @ M.T - np.eye(3)))
-
-    candidates = np.geomspace(FOCAL_RANGE[0], FOCAL_RANGE[1], 300) * side
-    costs = np.array([deviation(f) for f in candidates])
-    best = int(np.argmin(costs))
-    if best in (0, len(candidates) - 1) or costs[best] > 0.5 * min(costs[0], costs[-1]):
-        return None
-    return float(candidates[best])
+    return ranked + [prior]
 
 
 def _normalised(K: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -112,27 +94,37 @@ def _skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
 
-def refine_pose(
-    matches: Matches,
-    R: np.ndarray,
-    t: np.ndarray,
-    K_a: np.ndarray,
-    K_b: np.ndarray,
-    refine_focal: bool,
-    shared_focal: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """Minimise the robust Sampson error of all epipolar inliers over rotation,
-    translation direction and (optionally) the focal: one shared by both views
-    (same camera: better conditioned) or one per view (two focals + pose have the
-    7 degrees of freedom of a fundamental matrix, so the cameras then reproduce any
-    measured epipolar geometry, as the reprojection needs). A weak log-normal
-    prior holds each focal near its start. The result is put back on the right
-    side of the twisted-pair ambiguity (points in front of both cameras), which
-    the Sampson error cannot see. Returns ``(R, t, K_a, K_b, cost)``, ``cost`` the
-    robust (soft-L1) Sampson cost of the result, comparable between starts.
+@dataclass(frozen=True)
+class PoseFit:
+    """A refined relative pose: ``R`` ``(3, 3)``, unit ``t`` ``(3,)`` (``x_b = R x_a + t``),
+    the intrinsics ``K_a``, ``K_b``, and its robust (soft-L1) Sampson ``cost`` with the focal
+    prior's ``prior_cost``; ``objective``, their sum, compares fits of one set of matches."""
+
+    R: np.ndarray
+    t: np.ndarray
+    K_a: np.ndarray
+    K_b: np.ndarray
+    cost: float
+    prior_cost: float = 0.0
+
+    @property
+    def objective(self) -> float:
+        return self.cost + self.prior_cost
+
+
+def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                focal_prior: float | None = None) -> PoseFit:
+    """Minimise the robust Sampson error of all epipolar inliers over rotation, translation
+    direction and, with a ``focal_prior`` (px, of view a), the focal: both views' focals
+    scale together, so their ratio (one camera, or a crop or resized copy of its photo,
+    :mod:`pis3r.reconstruct.focal`) is kept, and a weak log-normal prior
+    (``FOCAL_PRIOR_WEIGHT``) holds the focal where the matches leave it free. The result is
+    put back on the right side of the twisted-pair ambiguity (points in front of both
+    cameras), which the Sampson error cannot see.
     """
     scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
     t = t / np.linalg.norm(t)
+    refine_focal = focal_prior is not None
 
     def unpack(p):
         Rm = Rotation.from_rotvec(p[:3]).as_matrix() @ R
@@ -141,56 +133,69 @@ def refine_pose(
         Ka, Kb = K_a.copy(), K_b.copy()
         if refine_focal:
             Ka[:2, :2] *= np.exp(p[5])
-            Kb[:2, :2] *= np.exp(p[-1])
+            Kb[:2, :2] *= np.exp(p[5])
         return Rm, tv, Ka, Kb
 
-    p0 = np.zeros(5 + (0 if not refine_focal else 1 if shared_focal else 2))
+    p0 = np.zeros(6 if refine_focal else 5)
     p0[3] = np.arccos(np.clip(t[2], -1, 1))
     p0[4] = np.arctan2(t[1], t[0])
+    prior_offset = np.log(K_a[0, 0] / focal_prior) if refine_focal else 0.0
+
+    def prior_residual(p):
+        return FOCAL_PRIOR_WEIGHT * scale * (p[5] + prior_offset)
 
     def residuals(p):
         Rm, tv, Ka, Kb = unpack(p)
         F = np.linalg.inv(Kb).T @ _skew(tv) @ Rm @ np.linalg.inv(Ka)
         sampson = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS)
-        if not refine_focal:
-            return sampson
-        return np.append(sampson, 3.0 * scale * p[5:])
+        return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
-    fit = least_squares(residuals, p0, loss="soft_l1", f_scale=scale, max_nfev=300)
+    fit = least_squares(residuals, p0, loss="cauchy", f_scale=scale, max_nfev=300)
     Rm, tv, Ka, Kb = unpack(fit.x)
     side_a = 2 * max(K_a[:2, 2]) + 1
-    if not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
-        Rm, tv, Ka, Kb = unpack(np.concatenate([p0[:5], np.zeros(len(p0) - 5)]))
-    E = _skew(tv) @ Rm
+    if refine_focal and not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
+        # A runaway, not a lens: the pose alone, at the starting focal.
+        fixed = refine_pose(matches, R, t, K_a, K_b)
+        return replace(fixed, prior_cost=_cauchy(np.array([prior_residual(p0) / scale])))
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
-    _, Rc, tc, _ = cv2.recoverPose(E, na, nb, np.eye(3))
-    F = np.linalg.inv(Kb).T @ E @ np.linalg.inv(Ka)
-    r = sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale
-    cost = float(np.sum(2.0 * (np.sqrt(1.0 + r * r) - 1.0)))
-    return Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, cost
+    _, Rc, tc, _ = cv2.recoverPose(_skew(tv) @ Rm, na, nb, np.eye(3))
+    prior_cost = _cauchy(np.array([prior_residual(fit.x) / scale])) if refine_focal else 0.0
+    return PoseFit(Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, epipolar_cost(matches, Rm, tv, Ka, Kb), prior_cost)
 
 
-def plane_from_homography(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a: np.ndarray):
+def epipolar_cost(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> float:
+    """The robust Sampson cost (as :func:`refine_pose`'s) of matches under the pose ``R``, ``t``."""
+    scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
+    F = np.linalg.inv(K_b).T @ _skew(t / max(np.linalg.norm(t), 1e-12)) @ R @ np.linalg.inv(K_a)
+    return _cauchy(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
+
+
+def _cauchy(r: np.ndarray) -> float:
+    """The Cauchy cost ``sum(log(1 + r^2))`` of residuals ``r`` in units of the scale."""
+    return float(np.sum(np.log1p(r * r)))
+
+
+def homography_decompositions(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, pts_a: np.ndarray):
     """Decompose ``H`` (a -> b) as ``K_b (R + t n^T) K_a^-1`` (plane ``n . X = 1`` in a).
 
-    Picks the physically valid solution (the matched points in front of both
-    cameras). Returns ``(R, t, n)``; ``t`` is scaled by the plane distance.
+    Returns the physically valid solutions (most matched points ``pts_a`` ``(N, 2)`` in front
+    of both cameras; usually two, which the homography alone cannot tell apart), each
+    ``(R (3, 3), t (3,), n (3,))`` with ``t`` in units of the plane's distance.
     """
     Hn = np.linalg.inv(K_b) @ H @ K_a
     # cv2.decomposeHomographyMat wants one shared K; work in normalised coordinates.
-    count, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
+    _, Rs, ts, ns = cv2.decomposeHomographyMat(Hn, np.eye(3))
     rays = np.hstack([_normalised(K_a, pts_a), np.ones((len(pts_a), 1))])
-    best, best_score = None, -1.0
+    solutions, scores = [], []
     for R, t, n in zip(Rs, ts, ns):
-        n = n.ravel()
-        t = t.ravel()
+        n, t = n.ravel(), t.ravel()
         with np.errstate(divide="ignore", invalid="ignore"):
             depth_a = 1.0 / (rays @ n)  # points on the plane n . X = 1
             X_b = (rays * depth_a[:, None]) @ R.T + t
-        score = float(np.mean((depth_a > 0) & (X_b[:, 2] > 0)))
-        if score > best_score + 1e-9:
-            best, best_score = (R, t, n), score
-    return best
+        solutions.append((R, t, n))
+        scores.append(float(np.mean((depth_a > 0) & (X_b[:, 2] > 0))))
+    best = max(scores)
+    return [solution for solution, score in zip(solutions, scores) if score > best - 1e-9]
 
 
 def triangulate_depth(

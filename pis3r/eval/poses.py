@@ -1,0 +1,105 @@
+"""``pis3r eval DATA -o OUT --pose-only``: the cameras the classical backend exports, against
+the GT cameras of every case that has them, without rendering anything.
+
+One row per case: relative rotation error and translation-direction error (degrees,
+:func:`pis3r.eval.geometry.pose_error`), the reference focal found vs the GT one, the model,
+the features used, the epipolar inliers, how many warnings the cameras came with (a focal
+the views do not determine, an implausible one, few inliers), and the refusal if the pair
+was refused. Medians are over the pairs that
+were reconstructed; an exported pure rotation (no translation) of a pair whose GT cameras
+have a baseline counts 90 deg of translation error there (an unknown direction is as far
+off as that on average), not a missing value.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pis3r.errors import Pis3rError
+from pis3r.eval.cases import CaseSpec, load_case
+from pis3r.eval.geometry import pose_error
+from pis3r.io import Photo, write_bytes
+
+COLUMNS = ("case", "rotation_error_deg", "translation_error_deg", "focal", "gt_focal", "model", "features",
+           "inliers", "warnings", "seconds", "refused")
+# Translation-direction error counted for a rotation exported where the GT has a baseline.
+MISSING_TRANSLATION_DEG = 90.0
+
+
+def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
+    """The pose row of one case, or ``None`` when it has no GT cameras."""
+    from pis3r.reconstruct.classical import ClassicalReconstructor
+    from pis3r.reconstruct.options import ReconstructOptions
+
+    case = load_case(spec, crop)
+    if case.cameras is None:
+        return None
+    row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal, "refused": ""}
+    start = time.perf_counter()
+    try:
+        pair = ClassicalReconstructor(ReconstructOptions()).cameras(Photo(case.reference, "ref"),
+                                                                    Photo(case.target, "tgt"))
+    except Pis3rError as exc:
+        return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
+    errors = pose_error(np.hstack([pair.R, pair.t[:, None]]), case)
+    if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
+        errors["translation_error_deg"] = MISSING_TRANSLATION_DEG
+    return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model, "features": pair.info["features"],
+            "inliers": pair.info["num_inliers"], "warnings": len(pair.warnings), "seconds": time.perf_counter() - start}
+
+
+def medians(rows: list[dict]) -> dict:
+    """Median rotation and translation-direction errors over the reconstructed rows, and counts."""
+    done = [r for r in rows if not r["refused"]]
+
+    def median(key):
+        values = [r[key] for r in done if not math.isnan(r[key])]
+        return float(np.median(values)) if values else math.nan
+
+    return {"rotation_error_deg": median("rotation_error_deg"),
+            "translation_error_deg": median("translation_error_deg"),
+            "reconstructed": len(done), "pairs": len(rows)}
+
+
+# Columns of the printed table: title, row key, cell format (right-aligned to the title).
+TABLE = (("rot °", "rotation_error_deg", "{:.2f}"), ("trans °", "translation_error_deg", "{:.2f}"),
+         ("focal", "focal", "{:.0f}"), ("GT focal", "gt_focal", "{:.0f}"), ("model", "model", "{}"),
+         ("features", "features", "{}"), ("inliers", "inliers", "{}"), ("warnings", "warnings", "{}"),
+         ("s", "seconds", "{:.1f}"))
+
+
+def format_table(rows: list[dict]) -> str:
+    """The per-pair table and the medians as aligned text (also valid Markdown)."""
+    width = max([len(r["case"]) for r in rows] + [4])
+    sizes = [max(len(title), {"model": 10, "seconds": 5}.get(key, 0)) for title, key, _ in TABLE]
+    lines = ["| " + " | ".join([f"{'case':{width}s}", *(f"{t:>{n}s}" for (t, _, _), n in zip(TABLE, sizes)),
+                                "refused"]) + " |",
+             "|" + "|".join(["-" * (width + 2), *("-" * (n + 1) + ":" for n in sizes), "-" * 9]) + "|"]
+    for r in rows:
+        cells = [("–" if r["refused"] and key not in ("gt_focal", "seconds") else fmt.format(r[key]))
+                 for _, key, fmt in TABLE]
+        lines.append("| " + " | ".join([f"{r['case']:{width}s}", *(f"{c:>{n}s}" for c, n in zip(cells, sizes)),
+                                        r["refused"]]) + " |")
+    summary = medians(rows)
+    lines += ["", f"median over {summary['reconstructed']} reconstructed of {summary['pairs']} pairs: rotation "
+              f"{summary['rotation_error_deg']:.2f}°, translation direction {summary['translation_error_deg']:.2f}°"]
+    return "\n".join(lines)
+
+
+def write_pose_report(rows: list[dict], outdir: Path) -> list[Path]:
+    """``poses.md`` (the table) and ``poses.csv`` (one line per case) in ``outdir``."""
+    outdir.mkdir(parents=True, exist_ok=True)
+    markdown, table = outdir / "poses.md", outdir / "poses.csv"
+    write_bytes(markdown, (format_table(rows) + "\n").encode())
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, restval="")
+    writer.writeheader()
+    writer.writerows(rows)
+    write_bytes(table, buffer.getvalue().encode())
+    return [markdown, table]

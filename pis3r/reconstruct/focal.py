@@ -1,0 +1,155 @@
+"""Focal length of two views: hypotheses, the prior, a rotation's focal (Brown–Lowe) and
+how to say that a focal is doubtful.
+
+Pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)`` with the principal point
+at the image centre (:func:`pis3r.camera.intrinsics`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from pis3r.camera import intrinsics
+from pis3r.features import Matches
+
+# Prior focal when neither the user, EXIF nor the two views give one: 1.2 x the longest
+# side (about 45 deg horizontal field of view), COLMAP's prior.
+FALLBACK_FOCAL_FACTOR = 1.2
+# Focal / longest side of ordinary lenses (about 19 to 90 deg across the longest side):
+# a self-calibrated focal outside is reported, since the cameras then are likely wrong.
+PLAUSIBLE_FOCAL = (0.5, 3.0)
+
+
+@dataclass(frozen=True)
+class FocalHypothesis:
+    """How the two views' focals relate: ``focal_b = ratio * focal_a``. ``focal_a``: known
+    (flag, EXIF) or ``None`` (to be estimated, ``prior_a`` its prior); ``name`` says which
+    relation it is, for the report."""
+
+    ratio: float
+    focal_a: float | None
+    prior_a: float
+    name: str
+
+    def intrinsics(self, focal_a: float, size_a: tuple[int, int], size_b: tuple[int, int]):
+        """``(K_a, K_b)`` for the reference focal ``focal_a``."""
+        return intrinsics(focal_a, *size_a), intrinsics(self.ratio * focal_a, *size_b)
+
+
+def focal_hypotheses(size_a: tuple[int, int], size_b: tuple[int, int], focal_a: float | None,
+                     focal_b: float | None) -> list[FocalHypothesis]:
+    """The focal relations worth testing for photos of sizes ``(width, height)`` with known
+    focals (or ``None``).
+
+    Both known: that. Otherwise the photos are assumed to come from one camera: same size,
+    same focal; different sizes are either a crop (same focal in pixels) or a resized copy
+    (same field of view), and both are tried — the pair's geometry decides. The prior of a
+    crop refers to the larger photo (the uncropped frame is at least that large)."""
+    side_a, side_b = max(size_a), max(size_b)
+    prior = FALLBACK_FOCAL_FACTOR * side_a
+    if focal_a is not None and focal_b is not None:
+        return [FocalHypothesis(focal_b / focal_a, focal_a, prior, "known")]
+    relations = [(1.0, "same focal", FALLBACK_FOCAL_FACTOR * max(side_a, side_b))]
+    if size_a != size_b:
+        relations[0] = (1.0, "same focal in pixels (a crop)", relations[0][2])
+        relations.append((side_b / side_a, "same field of view (a resized copy)", prior))
+    if focal_b is not None:  # the reference's focal follows from the other's
+        return [FocalHypothesis(ratio, focal_b / ratio, p, name) for ratio, name, p in relations]
+    return [FocalHypothesis(ratio, focal_a, p, name) for ratio, name, p in relations]
+
+
+def focals_from_homography(H: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, int]):
+    """``(focal_a, focal_b)`` (pixels, each ``None`` when undetermined) of a camera rotating
+    about its centre, from the homography ``H`` ``(3, 3)`` a -> b between pixels of images of
+    sizes ``(width, height)``.
+
+    Brown & Lowe's closed form (Shum & Szeliski 2000), as OpenCV's
+    ``cv2.detail.focalsFromHomography`` (whose Python binding returns nothing): ``K_b^-1 H K_a``
+    is a rotation, so the rows of ``H`` (centred pixels) give ``focal_a`` and its columns
+    ``focal_b``, each from two orthogonality / equal-norm conditions, the better conditioned kept."""
+    centre_a = np.array([[1, 0, (size_a[0] - 1) / 2], [0, 1, (size_a[1] - 1) / 2], [0, 0, 1.0]])
+    centre_b = np.array([[1, 0, (size_b[0] - 1) / 2], [0, 1, (size_b[1] - 1) / 2], [0, 0, 1.0]])
+    h = (np.linalg.inv(centre_b) @ H @ centre_a).ravel()
+
+    def root(numerator_1, denominator_1, numerator_2, denominator_2):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v1, v2 = numerator_1 / denominator_1, numerator_2 / denominator_2
+        if v1 < v2:
+            v1, v2 = v2, v1
+        if v1 > 0 and v2 > 0:
+            return float(np.sqrt(v1 if abs(denominator_1) > abs(denominator_2) else v2))
+        return float(np.sqrt(v1)) if v1 > 0 else None
+
+    focal_a = root(-h[2] * h[5], h[0] * h[3] + h[1] * h[4],
+                   h[5] ** 2 - h[2] ** 2, h[0] ** 2 + h[1] ** 2 - h[3] ** 2 - h[4] ** 2)
+    focal_b = root(-(h[0] * h[1] + h[3] * h[4]), h[6] * h[7],
+                   h[0] ** 2 + h[3] ** 2 - h[1] ** 2 - h[4] ** 2, (h[7] - h[6]) * (h[7] + h[6]))
+    return focal_a, focal_b
+
+
+def rotation_focal(H: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, int], ratio: float) -> float | None:
+    """The reference's focal of a rotation homography when ``focal_b = ratio * focal_a``:
+    the geometric mean of what rows and columns of ``H`` say (:func:`focals_from_homography`)."""
+    focal_a, focal_b = focals_from_homography(H, size_a, size_b)
+    estimates = [f for f in (focal_a, None if focal_b is None else focal_b / ratio) if f is not None]
+    return float(np.exp(np.mean(np.log(estimates)))) if estimates else None
+
+
+@dataclass(frozen=True)
+class RotationFit:
+    """A pure rotation ``x_b ~ K_b R K_a^-1 x_a`` fitted to matches: ``R`` ``(3, 3)``,
+    ``K_a``, ``K_b``, and ``residuals`` ``(N,)``, the transfer error a -> b in pixels of b."""
+
+    R: np.ndarray
+    K_a: np.ndarray
+    K_b: np.ndarray
+    residuals: np.ndarray
+
+
+def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_focal: bool) -> RotationFit:
+    """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
+    rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
+    ``refine_focal`` both focals scale together (their ratio is kept)."""
+    rays_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ np.linalg.inv(K_a).T
+    rays_b = np.hstack([matches.pts_b, np.ones((len(matches), 1))]) @ np.linalg.inv(K_b).T
+    # Kabsch start: the rotation that best aligns the unit rays.
+    u_a = rays_a / np.linalg.norm(rays_a, axis=1, keepdims=True)
+    u_b = rays_b / np.linalg.norm(rays_b, axis=1, keepdims=True)
+    U, _, Vt = np.linalg.svd(u_b.T @ u_a)
+    R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    scale = float(np.hypot(*K_b[:2, 2] * 2) / np.hypot(1024, 768))
+
+    def unpack(p):
+        Ka, Kb = K_a.copy(), K_b.copy()
+        if refine_focal:
+            Ka[:2, :2] *= np.exp(p[3])
+            Kb[:2, :2] *= np.exp(p[3])
+        return Rotation.from_rotvec(p[:3]).as_matrix() @ R0, Ka, Kb
+
+    def transfer(p):
+        R, Ka, Kb = unpack(p)
+        projected = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ (Kb @ R @ np.linalg.inv(Ka)).T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return projected[:, :2] / projected[:, 2:] - matches.pts_b
+
+    def residuals(p):
+        return np.nan_to_num(transfer(p), nan=1e6, posinf=1e6, neginf=-1e6).ravel()
+
+    fit = least_squares(residuals, np.zeros(4 if refine_focal else 3), loss="soft_l1", f_scale=scale, max_nfev=100)
+    R, Ka, Kb = unpack(fit.x)
+    return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(fit.x), nan=1e6), axis=1))
+
+
+def plausibility_warning(focal: float, width: int, height: int) -> str | None:
+    """One line when a self-calibrated ``focal`` (px) of a photo of that size lies outside
+    ``PLAUSIBLE_FOCAL`` times its longest side; ``None`` otherwise."""
+    factor = focal / max(width, height)
+    low, high = PLAUSIBLE_FOCAL
+    if low <= factor <= high:
+        return None
+    return (f"the self-calibrated focal length {focal:.0f} px is {factor:.2f} x the longest side "
+            f"(ordinary lenses: {low}-{high} x): the cameras are likely wrong; pass --focal if you know it")

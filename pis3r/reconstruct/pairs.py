@@ -1,0 +1,308 @@
+"""One pair's two-view geometry, without depth: consistent matches, the model that renders
+it, the focal and the relative pose exported for it.
+
+1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix; with fewer than
+   ``FEW_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
+   inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches).
+2. Model: if one homography explains the inliers (parallax level below the rotation
+   threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
+3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
+   the homography, Brown–Lowe, refined; an EXIF focal is checked against it) transfers its
+   points about as well as the homography; it is rendered as the homography's plane nearest
+   that rotation, or as the rotation itself where the plane's translation is negligible.
+   Otherwise it has a baseline: focal and pose come from the epipolar geometry as for 3-D
+   pairs, and the exported pose is the homography's decomposition the epipolar inliers
+   support (so the rendered plane is the homography exactly).
+4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
+   refined jointly over all inliers (robust Sampson, weak prior). A focal the matches do not
+   determine, or one outside ordinary lenses, is a warning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pis3r.camera import rotation_angle_deg
+from pis3r.errors import NotEnoughOverlapError
+from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match
+from pis3r.io import Photo
+from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
+from pis3r.reconstruct import geometry
+from pis3r.reconstruct.focal import (
+    FocalHypothesis,
+    fit_rotation,
+    focal_hypotheses,
+    plausibility_warning,
+    rotation_focal,
+)
+
+# Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
+# SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
+FEW_INLIERS = 50
+# ASIFT's matches replace SIFT's only with at least this many epipolar inliers: among its
+# hundreds of matches, a dozen agree on some fundamental matrix by chance.
+MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
+# Share of epipolar inliers one homography must explain for the pair to count as planar.
+PLANAR_FRACTION = 0.9
+# A rotation explains a homography pair when its median transfer error on the homography's
+# inliers is at most this factor times the homography's plus this slack (px at 1024 px):
+# the rotation has 4 parameters to the homography's 8, so it leaves a little more.
+ROTATION_FIT_FACTOR = 1.5
+ROTATION_FIT_SLACK_PX = 0.3
+# |t| / plane distance below which a rotation's homography is rendered as the rotation.
+ROTATION_TRANSLATION = 0.02
+# The focal counts as determined by the matches when moving it by this factor either way
+# (pose re-fitted) raises the robust Sampson cost by at least FOCAL_EVIDENCE (about what
+# three matches 1 px off their epipolar lines cost).
+FOCAL_PROBE_FACTOR = 1.25
+FOCAL_EVIDENCE = 2.5
+
+
+class PhotoFeatures:
+    """A photo with its SIFT features, and its ASIFT features computed when first asked for."""
+
+    def __init__(self, photo: Photo) -> None:
+        self.photo = photo
+        self.sift: Features = detect(photo.pixels)
+        self._affine: Features | None = None
+
+    @property
+    def affine(self) -> Features:
+        if self._affine is None:
+            self._affine = detect_affine(self.photo.pixels)
+        return self._affine
+
+
+@dataclass(frozen=True)
+class ConsistentMatches:
+    """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
+    fundamental matrix keeps; ``detector``: ``SIFT`` or ``ASIFT``."""
+
+    matches: Matches
+    inliers: np.ndarray
+    detector: str
+
+
+def consistent_matches(a: PhotoFeatures, b: PhotoFeatures) -> ConsistentMatches:
+    """SIFT matches of ``a`` in ``b`` and their epipolar inliers; when fewer than
+    ``FEW_INLIERS``, ASIFT's instead if it finds more, and at least ``MIN_AFFINE_INLIERS``."""
+    w, h = a.photo.width, a.photo.height
+    found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
+    if found.inliers.sum() >= FEW_INLIERS:
+        return found
+    distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
+    affine = _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
+    count = affine.inliers.sum()
+    return affine if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
+
+
+def _epipolar(matches: Matches, width: int, height: int, detector: str) -> ConsistentMatches:
+    _, inliers = geometry.fundamental(matches, width, height)
+    return ConsistentMatches(matches, inliers, detector)
+
+
+@dataclass(frozen=True)
+class PairGeometry:
+    """Two-view geometry of a reference a and another photo b, ``x_b = R x_a + t``.
+
+    ``model``: ``homography`` (rendered by the homography ``H`` ``(3, 3)`` a -> b) or ``3d``;
+    ``K_a``, ``K_b`` ``(3, 3)``; ``R`` ``(3, 3)``; ``t`` ``(3,)``: for the homography model in
+    units of the distance of its plane (``plane``: the normal ``n`` ``(3,)``, ``n . X = 1`` in
+    a), or zero with ``plane`` ``None`` (a rotation rendered as such); unit length for 3-D.
+    ``inliers``: the epipolar inliers. ``info``: report-only details (features, focal
+    relation and evidence)."""
+
+    model: str
+    model_reason: str
+    parallax: ParallaxEstimate
+    K_a: np.ndarray
+    K_b: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    plane: np.ndarray | None
+    H: np.ndarray
+    inliers: Matches
+    num_matches: int
+    focal_source: str
+    warnings: tuple[str, ...]
+    info: dict
+
+
+def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref: float | None,
+                  focal_other: float | None, known_source: str = "", focal_is_final: bool = False,
+                  model: str = "auto") -> PairGeometry:
+    """The geometry of ``ref`` and ``other`` from their consistent matches; ``focal_ref``,
+    ``focal_other``: known focals (flag, EXIF, an earlier pair) or ``None``, ``known_source``
+    says where the reference's came from. A known focal is checked against a rotation's
+    unless ``focal_is_final`` (the user's, or one the other views already use). ``model``:
+    ``auto`` (the degeneracy test below), or ``homography`` / ``3d`` forced."""
+    size_a, size_b = (ref.width, ref.height), (other.width, other.height)
+    matches, f_inl = found.matches, found.inliers
+    if f_inl.sum() < MIN_MATCHES:
+        raise NotEnoughOverlapError(
+            f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches")
+    parallax = parallax_from_matches(matches, float(np.hypot(*size_a)))
+    inliers = matches.subset(f_inl)
+    H, h_inl = geometry.homography(inliers, *size_a)
+    if H is None:
+        raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
+    hypotheses = focal_hypotheses(size_a, size_b, focal_ref, focal_other)
+    doubts = [f"only {int(f_inl.sum())} matches of {other.name} agree on one geometry: its camera may be wrong"
+              ] if f_inl.sum() < FEW_INLIERS else []
+
+    def result(model, reason, K_a, K_b, R, t, plane, source, warnings, details):
+        return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
+                            tuple(doubts + warnings),
+                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details})
+
+    # A plane seen from two places is explained by one homography too, whatever its
+    # parallax level; an essential matrix is degenerate there.
+    planar = model == "homography" or (
+        model == "auto" and (parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION))
+    why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
+    rotation = _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
+                         focal_is_final) if planar else None
+    if rotation is not None:
+        fit, source, warnings, details = rotation
+        # The homography keeps rendering the pair: as its plane (exactly) unless the
+        # translation it resolves is negligible, then as the rotation (constant depth).
+        R, t, n = min(geometry.homography_decompositions(H, fit.K_a, fit.K_b, inliers.pts_a),
+                      key=lambda solution: rotation_angle_deg(solution[0] @ fit.R.T))
+        if np.linalg.norm(t) < ROTATION_TRANSLATION:
+            R, t, n = fit.R, np.zeros(3), None
+        return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, warnings, details)
+    # Matches on one plane (within noise, or all but a few) leave the focal free.
+    plane_only = planar and (parallax.parallax_class == "rotation" or (~h_inl).sum() < MIN_MATCHES)
+    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only)
+    if pose is None:
+        hypothesis = hypotheses[0]
+        K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
+        source = known_source if hypothesis.focal_a else "prior (1.2 x longest side: no essential matrix fits)"
+        why = "no essential matrix fits the matches; falling back to the homography model"
+        R, t, n = _supported_decomposition(H, K_a, K_b, inliers)
+        return result("homography", why, K_a, K_b, R, t, n, source, [why], {"focal_relation": hypothesis.name})
+    fit, source, warnings, details = pose
+    if not planar:
+        return result("3d", f"parallax level {parallax.level:.2f} %: full 3-D model", fit.K_a, fit.K_b, fit.R,
+                      fit.t, None, source, warnings, details)
+    R, t, n = _supported_decomposition(H, fit.K_a, fit.K_b, inliers)
+    reason = f"{why}: a plane seen with a baseline (pose: the decomposition the epipolar inliers support)"
+    return result("homography", reason, fit.K_a, fit.K_b, R, t, n, source, warnings, details)
+
+
+def _rotation(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
+              focal_is_final: bool):
+    """``(RotationFit, focal source, warnings, details)`` when a pure rotation explains the
+    homography's inliers ``h_inliers``, else ``None``. Focals tried: the known one (fixed),
+    the homography's (Brown–Lowe, refined) unless the known one is final, the prior (fixed)
+    when neither is there. A known focal is kept when a rotation with it fits; when only the
+    homography's does (EXIF of a cropped or converted photo), that one is used, with a warning."""
+    homography_error = float(np.median(_transfer_error(H, h_inliers)))
+    tolerance = ROTATION_FIT_FACTOR * homography_error + ROTATION_FIT_SLACK_PX * np.hypot(*size_a) / np.hypot(1024, 768)
+    fits = []  # (error, kind, hypothesis, fit)
+    for hypothesis in hypotheses:
+        calibrated = rotation_focal(H, size_a, size_b, hypothesis.ratio)
+        starts = [(hypothesis.focal_a, "known")] if hypothesis.focal_a else []
+        if calibrated and not (hypothesis.focal_a and focal_is_final):
+            starts.append((calibrated, "calibrated"))
+        elif not hypothesis.focal_a:
+            starts.append((hypothesis.prior_a, "prior"))
+        for focal, kind in starts:
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            fit = fit_rotation(h_inliers, K_a, K_b, refine_focal=kind == "calibrated")
+            fits.append((float(np.median(fit.residuals)), kind, hypothesis, fit))
+    fitting = [candidate for candidate in fits if candidate[0] <= tolerance]
+    if not fitting:
+        return None
+    # A known focal that fits wins; among the others, the smallest error.
+    error, kind, hypothesis, fit = min(fitting, key=lambda candidate: (candidate[1] != "known", candidate[0]))
+    details = {"focal_relation": hypothesis.name, "rotation_error_px": error, "homography_error_px": homography_error}
+    if kind == "known":
+        return fit, known_source, [], details
+    if kind == "prior":
+        return fit, "prior (1.2 x longest side: the rotation does not determine it)", [
+            "focal length could not be self-calibrated; using 1.2 x the longest side"], details
+    focal = float(fit.K_a[0, 0])
+    warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
+    if hypothesis.focal_a:
+        warnings.append(f"the focal length {hypothesis.focal_a:.0f} px ({known_source}) does not fit this rotation; "
+                        f"using {focal:.0f} px, which does")
+    return fit, "self-calibrated (rotation homography: Brown-Lowe, refined)", warnings, details
+
+
+def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
+    """``(N,)`` pixels between ``H`` applied to ``pts_a`` and ``pts_b``."""
+    return np.linalg.norm(cv2.perspectiveTransform(matches.pts_a[None], H)[0] - matches.pts_b, axis=1)
+
+
+def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
+               plane_only: bool = False):
+    """``(PoseFit, focal source, warnings, details)`` of the best essential-matrix pose over
+    the focal hypotheses and starting focals (refined jointly), or ``None``. A later
+    hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
+    noisy matches, a wrong focal relation fits them a little better about as often as not.
+    An unknown focal the matches do not determine comes with a warning: it is where the
+    weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``)."""
+    best = None
+    for hypothesis in hypotheses:
+        starts = ([hypothesis.focal_a] if hypothesis.focal_a else
+                  geometry.focal_candidates(inliers, size_a, size_b, hypothesis.prior_a, hypothesis.ratio))
+        prior = None if hypothesis.focal_a else hypothesis.prior_a
+        fits = []
+        for focal in starts:
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
+            if pose is not None:
+                fits.append(geometry.refine_pose(inliers, pose[0], pose[1], K_a, K_b, prior))
+        fit = min(fits, key=lambda candidate: candidate.objective, default=None)
+        if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
+            best = (fit, hypothesis)
+    if best is None:
+        return None
+    fit, hypothesis = best
+    details = {"focal_relation": hypothesis.name}
+    if hypothesis.focal_a:
+        return fit, known_source, [], details
+    evidence = 0.0 if plane_only else _focal_evidence(inliers, fit)
+    details["focal_evidence"] = evidence
+    if plane_only:
+        # A plane tells nothing about the focal: take the prior, not where the fit drifted.
+        K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
+        fit = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+    if evidence < FOCAL_EVIDENCE:
+        why = ("the matches lie on one plane" if plane_only else
+               f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
+        return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
+            f"these two views do not determine the focal length ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
+            "the exported cameras depend on it, pass --focal if you know it"], details
+    focal = float(fit.K_a[0, 0])
+    warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
+    return fit, "self-calibrated (essential matrix + Sampson refinement)", warnings, details
+
+
+def _focal_evidence(inliers: Matches, fit: geometry.PoseFit) -> float:
+    """How much worse the matches fit with the focal moved by ``FOCAL_PROBE_FACTOR`` either
+    way (pose re-fitted): the smaller rise of the robust Sampson cost."""
+    rises = []
+    for factor in (FOCAL_PROBE_FACTOR, 1.0 / FOCAL_PROBE_FACTOR):
+        K_a, K_b = fit.K_a.copy(), fit.K_b.copy()
+        K_a[:2, :2] *= factor
+        K_b[:2, :2] *= factor
+        probe = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+        rises.append(probe.cost - fit.cost)
+    return float(min(rises))
+
+
+def _supported_decomposition(H, K_a, K_b, inliers: Matches):
+    """``(R, t, n)``: the physically valid decomposition of ``H`` whose epipolar geometry fits
+    the epipolar inliers best (points off the plane tell the two apart; on the plane both fit).
+    When they fit about as well (``FOCAL_EVIDENCE``), the one whose plane faces both cameras
+    more squarely: a surface is rarely matched at grazing angles. The plane then renders ``H``
+    and the pose is the one the matches support."""
+    solutions = geometry.homography_decompositions(H, K_a, K_b, inliers.pts_a)
+    costs = [geometry.epipolar_cost(inliers, R, t, K_a, K_b) for R, t, _ in solutions]
+    supported = [s for s, cost in zip(solutions, costs) if cost <= min(costs) + FOCAL_EVIDENCE]
+    return max(supported, key=lambda solution: min(solution[2][2], (solution[0] @ solution[2])[2]))

@@ -1,0 +1,121 @@
+"""pis3r.reconstruct.pairs and .focal: the cameras exported for a pair (rotation focal,
+focal hypotheses and doubts, the ASIFT retry), on exact synthetic cameras."""
+
+import numpy as np
+import pytest
+
+from pis3r.camera import Camera, intrinsics, relative_pose, rotation_from_angles
+from pis3r.features import match
+from pis3r.io import Photo
+from pis3r.parallax import MIN_MATCHES
+from pis3r.reconstruct.classical import ClassicalReconstructor
+from pis3r.reconstruct.geometry import fundamental
+from pis3r.reconstruct.focal import focal_hypotheses, focals_from_homography, plausibility_warning
+from pis3r.reconstruct.options import ReconstructOptions
+from pis3r.reconstruct.pairs import PhotoFeatures, consistent_matches
+from tests.analytic import Plane, _texture, planes_scene, render, rotation_y
+
+
+def angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("size_b, focal_b", [((480, 360), 500.0), ((800, 600), 500.0), ((800, 600), 833.3)])
+def test_focals_from_an_exact_rotation_homography(size_b, focal_b):
+    K_a, K_b = intrinsics(500.0, 480, 360), intrinsics(focal_b, *size_b)
+    R = rotation_from_angles(12.0, 5.0, 3.0).T
+    H = 3.7 * K_b @ R @ np.linalg.inv(K_a)  # a homography is known up to scale
+    assert focals_from_homography(H, (480, 360), size_b) == pytest.approx((500.0, focal_b), rel=1e-9)
+
+
+def test_different_sizes_are_a_crop_or_a_resized_copy_and_known_focals_are_kept():
+    crop, resized = focal_hypotheses((480, 360), (800, 600), None, None)
+    assert (crop.ratio, resized.ratio) == (1.0, pytest.approx(800 / 480))
+    assert crop.prior_a == pytest.approx(1.2 * 800) and resized.prior_a == pytest.approx(1.2 * 480)
+    [same] = focal_hypotheses((480, 360), (480, 360), None, None)
+    assert same.ratio == 1.0 and same.focal_a is None
+    [known] = focal_hypotheses((480, 360), (800, 600), 400.0, 700.0)
+    assert (known.focal_a, known.ratio) == (400.0, 1.75)
+
+
+def test_an_implausible_focal_is_a_warning():
+    assert plausibility_warning(600.0, 640, 480) is None
+    assert "0.25 x the longest side" in plausibility_warning(160.0, 640, 480)
+    assert "4.00 x" in plausibility_warning(2560.0, 640, 480)
+
+
+def rotation_photos(focal_px=None):
+    """A wall seen by a camera turning 15 deg right and 4 down about its centre (focal 400)."""
+    K = intrinsics(400, 400, 300)
+    wall = planes_scene()[:1]
+    turned = Camera(K, rotation_from_angles(15.0, 4.0, 1.0).T, np.zeros(3), 400, 300)
+    a, _ = render(wall, Camera.identity(K, 400, 300))
+    b, _ = render(wall, turned)
+    return Photo(a, "a", focal_px, "test"), Photo(b, "b", focal_px, "test"), turned
+
+
+def test_a_rotation_gets_the_focal_of_its_homography():
+    a, b, turned = rotation_photos()
+    pair = ClassicalReconstructor(ReconstructOptions()).cameras(a, b)
+    assert pair.model == "homography" and pair.plane is None and not np.any(pair.t)
+    assert pair.focal_source.startswith("self-calibrated (rotation homography")
+    assert pair.K_a[0, 0] == pytest.approx(400.0, rel=0.01)
+    assert angle_deg(pair.R @ turned.R.T) < 0.1
+
+
+def test_an_exif_focal_that_no_rotation_fits_is_replaced_with_a_warning():
+    a, b, _ = rotation_photos(focal_px=300.0)
+    pair = ClassicalReconstructor(ReconstructOptions()).cameras(a, b)
+    assert pair.K_a[0, 0] == pytest.approx(400.0, rel=0.01)
+    assert any("300 px (EXIF (test)) does not fit this rotation" in w for w in pair.warnings)
+    # The user's --focal is final: kept, the pair is then a plane seen from two places.
+    flagged = ClassicalReconstructor(ReconstructOptions(focal=300.0)).cameras(a, b)
+    assert flagged.focal_source == "flag" and flagged.K_a[0, 0] == 300.0
+
+
+def facade_pair(centre, yaw):
+    """A facade slanted 35 deg, 8 m in front of the reference, and a second camera at
+    ``centre`` turned by ``yaw``: ``(photo_a, photo_b, reference camera, other camera)``."""
+    K = intrinsics(420.0, 480, 360)
+    along = rotation_y(35.0)[:, 0]
+    facade = [Plane(np.array([0, -4.0, 8.0]) - 6 * along, 12 * along, np.array([0, 8.0, 0]),
+                    _texture("astronaut", 1024))]
+    ref = Camera.identity(K, 480, 360)
+    R = rotation_from_angles(yaw, 3.0, 0.0).T
+    other = Camera(K, R, -R @ np.asarray(centre), 480, 360)
+    return Photo(render(facade, ref)[0], "a"), Photo(render(facade, other)[0], "b"), ref, other
+
+
+def test_a_plane_seen_with_a_baseline_exports_its_translation():
+    a, b, ref, other = facade_pair([-1.5, 0.2, 0.5], -8.0)
+    pair = ClassicalReconstructor(ReconstructOptions(focal=420.0)).cameras(a, b)
+    R_gt, t_gt = relative_pose(ref, other)
+    assert pair.model == "homography" and pair.plane is not None
+    assert angle_deg(pair.R @ R_gt.T) < 0.5
+    direction = np.degrees(np.arccos(pair.t @ t_gt / np.linalg.norm(pair.t) / np.linalg.norm(t_gt)))
+    assert direction < 3.0
+
+
+def test_a_focal_a_plane_leaves_free_is_the_prior_with_a_warning():
+    a, b, _, _ = facade_pair([-1.5, 0.2, 0.5], -8.0)
+    pair = ClassicalReconstructor(ReconstructOptions()).cameras(a, b)
+    assert pair.K_a[0, 0] == pytest.approx(1.2 * 480) and pair.focal_source.startswith("prior-dominated")
+    assert any("do not determine the focal length (the matches lie on one plane)" in w for w in pair.warnings)
+
+
+def test_asift_matches_a_view_too_oblique_for_sift():
+    """A wall seen head-on and from 78 deg off its normal: SIFT finds almost nothing."""
+    K = intrinsics(420.0, 480, 360)
+    wall = [Plane(np.array([-4.0, -3.0, 6.0]), np.array([8.0, 0, 0]), np.array([0, 6.0, 0]),
+                  _texture("astronaut", 1024))]
+    centre = np.array([0, 0, 6.0]) - 6.0 * np.array([np.sin(np.radians(78)), 0, np.cos(np.radians(78))])
+    oblique = Camera(K, rotation_y(-78.0), -rotation_y(-78.0) @ centre, 480, 360)
+    a = PhotoFeatures(Photo(render(wall, Camera.identity(K, 480, 360))[0], "a"))
+    b = PhotoFeatures(Photo(render(wall, oblique)[0], "b"))
+    assert fundamental(match(a.sift, b.sift), 480, 360)[1].sum() < MIN_MATCHES
+    found = consistent_matches(a, b)
+    assert found.detector == "ASIFT" and found.inliers.sum() > 100
+    pair = ClassicalReconstructor(ReconstructOptions(focal=420.0)).pair_geometry(a, b, 420.0, "flag", True)
+    R_gt, t_gt = relative_pose(Camera.identity(K, 480, 360), oblique)
+    assert angle_deg(pair.R @ R_gt.T) < 1.0
+    assert np.degrees(np.arccos(pair.t @ t_gt / np.linalg.norm(pair.t) / np.linalg.norm(t_gt))) < 2.0
