@@ -126,8 +126,8 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     if choice.chosen is not None:
         backend_options = choice.chosen.backend_options(backend_options)
         if choice.scores:
-            timer.say("model: " + ", ".join(f"{s.candidate.model}{'/' + s.candidate.depth_fill if s.candidate.depth_fill else ''}"
-                                            f" {s.psnr:.2f} dB" for s in choice.scores) + f" -> {choice.chosen.model}")
+            scores = ", ".join(f"{score.candidate.label} {score.psnr:.2f} dB" for score in choice.scores)
+            timer.say(f"model on the held-back band: {scores} -> {choice.chosen.label}")
     with timer.stage("reconstruct"):
         scene = create_backend(backend, backend_options).reconstruct(ordered)
     scene = scene.in_input_order(order)
@@ -140,12 +140,14 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
 
 @dataclass
 class Composite:
-    """One reference's canvas after every stage: geometry, final image, mask, stage seconds."""
+    """One reference's canvas after every stage: geometry, final image, mask, stage seconds,
+    and the refinement that ran (``auto`` resolved)."""
 
     canvas: Canvas
     image: np.ndarray
     mask: np.ndarray
     seconds: dict[str, float]
+    refine: str
 
 
 def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: StageTimer) -> Composite:
@@ -162,11 +164,12 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
             editable=canvas.occupied | filled.hole, method=options.blend, into_reference=options.blend_into_reference,
         )
     mask = stitch_mask(canvas.occupied, filled.hole)
-    if resolve_refine(options.refine, options.refine_weights) == "rddm":
+    refine = resolve_refine(options.refine, options.refine_weights)
+    if refine == "rddm":
         with sub.stage("refine"):
             image = refine_canvas(image, mask, options.refine_region, options.refine_steps, device,
                                   options.refine_weights)
-    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds})
+    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine)
 
 
 def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: ParallaxEstimate, result: Composite,
@@ -196,6 +199,6 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "dropped": [dropped.to_dict() for dropped in scene.dropped],
         "warnings": list(warnings),
         "details": {"model_reason": scene.model_reason},
-        "refine": {"method": resolve_refine(options.refine, options.refine_weights),
+        "refine": {"method": result.refine,
                    "region": options.refine_region, "steps": options.refine_steps},
     }

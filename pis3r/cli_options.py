@@ -11,20 +11,6 @@ import click
 from pis3r.options import StitchOptions, flag
 
 
-class RefType(click.ParamType):
-    """``--ref``: an image index or ``all``."""
-
-    name = "INDEX|all"
-
-    def convert(self, value: Any, param, ctx) -> int | str:
-        if isinstance(value, int) or value == "all":
-            return value
-        try:
-            return int(value)
-        except ValueError:
-            self.fail(f"must be an image index or 'all', got {value!r}", param, ctx)
-
-
 def click_option(name: str) -> Callable:
     """The click option for ``StitchOptions`` field ``name`` (``--max-canvas-scale`` for
     ``max_canvas_scale``), with the field's default, choices, range and help."""
@@ -32,7 +18,8 @@ def click_option(name: str) -> Callable:
     meta, default = spec.metadata, spec.default
     settings: dict[str, Any] = {"help": meta["help"], "default": default, "show_default": default is not None}
     if name == "ref":
-        settings["type"] = RefType()
+        # An index or "all": StitchOptions parses it, with the same message as for the API.
+        settings.update(type=str, metavar="INDEX|all")
     elif meta["choices"] is not None:
         settings["type"] = click.Choice(list(meta["choices"]))
     elif meta["kind"] is bool:

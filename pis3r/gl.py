@@ -38,14 +38,20 @@ def unavailable_reason() -> str:
     return _state["error"]
 
 
-@contextmanager
-def current_context():
-    """The shared context, current in this thread for the ``with`` block."""
+def required_context():
+    """The shared context; a one-line :class:`Pis3rError` saying why when there is none."""
     context = shared_context()
     if context is None:
         raise Pis3rError(
             f"cannot create a headless OpenGL context (moderngl + EGL): {unavailable_reason()}; "
             "install Mesa's EGL (Debian/Ubuntu: libegl1 libgl1-mesa-dri)"
         )
+    return context
+
+
+@contextmanager
+def current_context():
+    """The shared context, current in this thread for the ``with`` block."""
+    context = required_context()
     with _lock, context:
         yield context

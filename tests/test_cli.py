@@ -217,6 +217,9 @@ def test_unwritable_output(overlapping_pair, tmp_path):
 def test_bad_options(overlapping_pair, tmp_path):
     proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--ref", "7")
     assert_clean_failure(proc, 2, "--ref")
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--ref", "first")
+    assert_clean_failure(proc, 2, "--ref must be an image index or 'all', got 'first'")
+    assert not (tmp_path / "out").exists()
 
 
 def test_classify_prints_class_and_level(overlapping_pair):

@@ -55,6 +55,11 @@ class Candidate:
     model: str
     depth_fill: str | None = None
 
+    @property
+    def label(self) -> str:
+        """``homography`` or ``3d/<depth fill>``."""
+        return f"{self.model}/{self.depth_fill}" if self.depth_fill else self.model
+
     def backend_options(self, base: ReconstructOptions) -> ReconstructOptions:
         return replace(base, model=self.model, depth_fill=self.depth_fill or base.depth_fill)
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import Camera
-from pis3r.gl import current_context, shared_context
+from pis3r.gl import current_context, required_context
 from pis3r.synth.scenes import SynthScene
 
 NEAR, FAR = 0.05, 5000.0  # metres; the backdrop is at most ~400 m from any camera
@@ -109,18 +109,9 @@ def clip_from_world(camera: Camera) -> np.ndarray:
     return gl_projection(camera) @ extrinsics
 
 
-def gl_context():
-    """The process's shared headless GL context (:mod:`pis3r.gl`)."""
-    context = shared_context()
-    if context is None:
-        with current_context():  # raises the one-line error saying why
-            pass
-    return context
-
-
 @functools.lru_cache(maxsize=1)
 def _program():
-    return gl_context().program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
+    return required_context().program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
 
 
 class _Uploaded:
@@ -129,7 +120,7 @@ class _Uploaded:
     def __init__(self, scene: SynthScene) -> None:
         import moderngl
 
-        ctx = gl_context()
+        ctx = required_context()
         self.program = _program()
         mesh = scene.mesh
         per_vertex = np.repeat(np.arange(mesh.triangles), 3)
@@ -172,7 +163,7 @@ def _target(width: int, height: int):
             for fbo in _targets.values():
                 fbo.release()
             _targets.clear()
-        ctx = gl_context()
+        ctx = required_context()
         colour = ctx.texture((width, height), 4, dtype="f4")
         depth = ctx.texture((width, height), 1, dtype="f4")
         _targets[(width, height)] = ctx.framebuffer([colour, depth], ctx.depth_renderbuffer((width, height)))
@@ -184,7 +175,7 @@ def _draw(scene: SynthScene, camera: Camera, textured: bool):
     Call with the shared context current."""
     import moderngl
 
-    gl_context().enable(moderngl.DEPTH_TEST)
+    required_context().enable(moderngl.DEPTH_TEST)
     uploaded = _uploaded(scene)
     fbo = _target(camera.width, camera.height)
     fbo.use()
