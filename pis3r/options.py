@@ -24,8 +24,7 @@ from pis3r.device import DEFAULT_DEVICE, DEVICES
 from pis3r.errors import InvalidOptionError
 from pis3r.reconstruct.base import BACKEND_CHOICES, DEFAULT_BACKEND
 from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD
-from pis3r.refine import DEFAULT_REFINE, REFINE_METHODS
-from pis3r.refine.canvas import DEFAULT_REGION, DEFAULT_STEPS, REGIONS
+from pis3r.refine import DEFAULT_REFINE, DEFAULT_REGION, DEFAULT_STEPS, REFINE_METHODS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
 from pis3r.stitch.choose import DEFAULT_DEPTH_FILL_CHOICE, DEFAULT_MODEL, DEPTH_FILL_CHOICES, MODEL_CHOICES
 from pis3r.stitch.holes import DEFAULT_HOLE_RADIUS

@@ -95,3 +95,19 @@ def test_mutual_matching_keeps_a_subset_of_one_way_matches_and_needs_rootsift(pa
     with pytest.raises(ValueError, match="RootSIFT"):
         match(a, plain)
     assert len(match(a, detect(np.zeros((50, 50, 3), np.float32)))) == 0  # nothing to match
+
+
+def test_mutual_matching_is_the_two_way_ratio_test_of_opencvs_brute_force_neighbours(pair):
+    a, b = detect(pair[0]), detect(pair[1])
+    forward = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+    backward = cv2.BFMatcher(cv2.NORM_L2).knnMatch(b.descriptors, a.descriptors, k=2)
+    expected = [
+        (m.queryIdx, m.trainIdx) for m, second in forward
+        if m.distance < 0.85 * second.distance
+        and backward[m.trainIdx][0].trainIdx == m.queryIdx
+        and backward[m.trainIdx][0].distance < 0.85 * backward[m.trainIdx][1].distance
+    ]
+    found = match(a, b)
+    assert len(expected) > 50
+    assert np.array_equal(found.pts_a, a.points[[i for i, _ in expected]])
+    assert np.array_equal(found.pts_b, b.points[[j for _, j in expected]])

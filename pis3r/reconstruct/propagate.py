@@ -22,10 +22,13 @@ behind the camera.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 # How depth is continued where one view sees the scene (module docstring).
 DEPTH_FILLS = ("planar", "harmonic")
@@ -37,6 +40,9 @@ PLANE_LEASH = 1.25
 
 def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
     """Weighted graph Laplacian ``(N, N)`` of the 4-neighbour grid of ``guide (h, w, 3)``."""
+    # scipy only where depth is solved for: importing pis3r stays fast (issue 12).
+    import scipy.sparse as sp
+
     h, w = guide.shape[:2]
     idx = np.arange(h * w).reshape(h, w)
     lab = cv2.cvtColor(guide.astype(np.float32), cv2.COLOR_RGB2LAB) / np.array([100.0, 127.0, 127.0], np.float32)
@@ -57,6 +63,9 @@ def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
 
 def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float) -> np.ndarray:
     """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
     A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsc().astype(np.float64)
     # Minimum-degree ordering suits the symmetric grid system (faster than COLAMD).
     return splu(A, permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))

@@ -263,7 +263,6 @@ def render_to_canvas(
     scene: Scene,
     ref_index: int = 0,
     max_canvas_scale: float = DEFAULT_MAX_CANVAS_SCALE,
-    device: str = "cpu",
     match_exposure: bool = True,
     raster_backend: str = "auto",
     max_stretch: float = MAX_STRETCH,
@@ -277,11 +276,10 @@ def render_to_canvas(
     exposure does not show as a frame around the reference. ``raster_backend``:
     ``"auto"`` (OpenGL where an EGL context can be created, else numpy), ``"gl"`` or
     ``"numpy"`` (:mod:`pis3r.stitch.raster`). ``max_stretch``: see the module docstring
-    (``np.inf`` keeps every surface). ``device`` is accepted for the stage
-    contract: OpenGL runs on whatever device EGL offers (a GPU where present), and the
+    (``np.inf`` keeps every surface). There is no device
+    argument: OpenGL runs on whatever device EGL offers (a GPU where present), and the
     rest of the stage is OpenCV/numpy on the CPU.
     """
-    del device  # see the docstring: OpenGL picks its own device
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
     surfaces, counts = _surfaces(scene, ref_index, max_stretch)
