@@ -254,9 +254,10 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.
                             borderMode=cv2.BORDER_REPLICATE)
         if (gains[k] != 1).any():
             cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,), dst=sampled)
+        # Bicubic overshoots at sharp edges; a gain may push past white.
+        np.clip(sampled, 0.0, 1.0, out=sampled)
         np.copyto(image[box], sampled, where=mine[box][..., None])
-    # Bicubic overshoots at sharp edges; a gain may push past white.
-    return np.clip(image, 0.0, 1.0, out=image)
+    return image
 
 
 def render_to_canvas(
