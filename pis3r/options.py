@@ -72,7 +72,8 @@ class StitchOptions:
         "band of the reference.", choices=MODEL_CHOICES)
     depth_fill: str = _option(
         DEFAULT_DEPTH_FILL_CHOICE, "3-D model: extend depth where one view sees the scene by continuing local "
-        "planes (planar) or by smooth inverse depth (harmonic); auto chooses by the held-back band.",
+        "planes (planar), by smooth inverse depth (harmonic) or by continuing the scene's dominant planes "
+        "unbroken (planes); auto chooses by the held-back band.",
         choices=DEPTH_FILL_CHOICES)
     hole_radius: int = _option(
         DEFAULT_HOLE_RADIUS, "Radius (px) of the closing disk: gaps up to about twice this are inpainted.",
