@@ -221,16 +221,20 @@ def _exposure_gains(scene: Scene, raster: Raster, indices: list[int], window, re
     """``(len(indices), 3)`` float32: per layer, the robust per-channel gain that maps its
     view's colours onto the reference where its surface lands inside it (``window``: the
     reference's slices in the canvas), so a different exposure does not show as a frame."""
-    layer, uv = raster.layer[window].ravel(), raster.uv[window].reshape(-1, 2)
+    # A robust median needs far fewer samples than the reference has pixels: a regular
+    # grid of about GAIN_SAMPLES of them.
+    rows, cols = window
+    stride = max(1, int((ref_image.shape[0] * ref_image.shape[1] / GAIN_SAMPLES) ** 0.5))
+    grid = (slice(rows.start, rows.stop, stride), slice(cols.start, cols.stop, stride))
+    layer, uv = raster.layer[grid].ravel(), raster.uv[grid].reshape(-1, 2)
+    reference = ref_image[::stride, ::stride].reshape(-1, 3)
     gains = np.ones((len(indices), 3), np.float32)
     for k, index in enumerate(indices):
         chosen = np.flatnonzero(layer == k)
-        # A robust median needs far fewer samples than a canvas has pixels.
-        chosen = chosen[:: max(1, len(chosen) // GAIN_SAMPLES)]
         if len(chosen) < 100:
             continue
         ours = _sample_points(scene.views[index].image, uv[chosen])
-        theirs = ref_image.reshape(-1, 3)[chosen]
+        theirs = reference[chosen]
         # Saturated or black pixels carry no information about the gain.
         usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(axis=1)
         if int(usable.sum()) >= 100:
