@@ -1,7 +1,8 @@
 """Which depth fill extends the stitch best? pis3r (classical) per ``--depth-fill``
 option on every real pair under the crop protocol, scored with the exact ``ref_offset``.
 
-    .venv/bin/python benchmarks/depth_fill.py [--data ../shared/data/real] [--methods planar harmonic]
+    .venv/bin/python benchmarks/depth_fill.py [--data ../shared/data/real] [--methods planar harmonic planes]
+        [--only NAME ...]
 
 Prints, per pair and method, the coverage of the extension and the PSNR / LPIPS on its
 filled part (a failure counts as an empty extension), then the mean PSNR per parallax
@@ -21,6 +22,7 @@ import pis3r
 from pis3r.errors import Pis3rError
 from pis3r.eval.cases import discover_cases, load_case
 from pis3r.eval.scoring import score_exact, score_failure
+from pis3r.reconstruct.propagate import DEPTH_FILLS
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 
@@ -29,13 +31,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--crop", type=float, default=0.6)
-    parser.add_argument("--methods", nargs="+", default=["planar", "harmonic"])
+    parser.add_argument("--methods", nargs="+", default=list(DEPTH_FILLS), choices=DEPTH_FILLS)
+    parser.add_argument("--only", nargs="*", default=None, help="pair folder names to run (default: all)")
     args = parser.parse_args()
 
     means = defaultdict(list)
     print(f"{'pair':36s} {'class':9s} {'fill':9s} {'cov':>6s} {'PSNR':>7s} {'LPIPS':>7s}")
     for spec in discover_cases(args.data):
-        if spec.kind != "pair":
+        if spec.kind != "pair" or (args.only and spec.name not in args.only):
             continue
         case = load_case(spec, args.crop)
         for method in args.methods:

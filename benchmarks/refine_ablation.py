@@ -15,7 +15,7 @@ its own ``ref_offset`` and scored on the filled part of the extension (``fill_*`
 
 Methods: ``none`` = the z-buffered canvas without hole filling (holes are background);
 ``telea`` = closing + Telea (the pipeline without refinement, the paper's "w/o refine");
-``rddm_holes`` / ``rddm_all`` = :func:`pis3r.refine.refine_canvas` on the Telea canvas.
+``rddm_holes`` / ``rddm_all`` = :func:`pis3r.refine.canvas.refine_canvas` on the Telea canvas.
 The issue's bar compares RDDM with ``telea``.
 """
 
@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from pis3r.eval import metrics
-from pis3r.refine import default_weights_path, refine_canvas
+from pis3r.refine import default_weights_path
+from pis3r.refine.canvas import refine_canvas
 from pis3r.refine.data import make_pair
 from pis3r.refine.train import HELD_OUT_SEED
 

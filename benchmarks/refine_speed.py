@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 import torch
 
-from pis3r.refine import default_weights_path, refine_canvas
+from pis3r.refine import default_weights_path
+from pis3r.refine.canvas import refine_canvas
 from pis3r.refine.data import make_pair
 from pis3r.refine.train import HELD_OUT_SEED
 

@@ -50,7 +50,7 @@ import numpy as np
 from pis3r.camera import Camera, intrinsics
 from pis3r.scene import Scene, View
 from pis3r.stitch.render import render_to_canvas
-device, backend = sys.argv[1], sys.argv[2]
+backend = sys.argv[1]
 w, h = 1224, 816
 K = intrinsics(1000, w, h)
 rng = np.random.default_rng(0)
@@ -62,11 +62,11 @@ depth = np.where((abs(u - w / 2) < w / 10) & (abs(v - h / 2) < h * 0.15), 3.0, d
 views = [View(rng.uniform(0, 1, (h, w, 3)).astype(np.float32), Camera(K, np.eye(3), [-shift, 0, 0], w, h), depth,
               np.ones((h, w), np.float32)) for shift in (0.0, 0.6)]
 scene = Scene(views)
-render_to_canvas(scene, device=device, raster_backend=backend)
+render_to_canvas(scene, raster_backend=backend)
 times = []
 for _ in range(5):
     start = time.perf_counter()
-    render_to_canvas(scene, device=device, raster_backend=backend)
+    render_to_canvas(scene, raster_backend=backend)
     times.append(time.perf_counter() - start)
 print(min(times) * 1000)
 """
@@ -107,7 +107,7 @@ def main() -> None:
             print(f"mean total seconds ({label}): {sum(values) / len(values):.2f} over {len(values)} pairs")
     for backend in ("gl", "numpy"):
         try:
-            ms = f"{float(run_child(_RENDER, args.device, backend)):.1f} ms"
+            ms = f"{float(run_child(_RENDER, backend)):.1f} ms"
         except RuntimeError as exc:
             ms = f"failed: {exc}"
         print(f"render of two 1 MP views ({backend} rasteriser): {ms}")

@@ -28,7 +28,7 @@ from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer, WarningLog
 from pis3r.reconstruct.base import create_backend, resolve_backend_name
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.refine import refine_canvas, resolve_refine
+from pis3r.refine import resolve_refine
 from pis3r.result import StitchResult
 from pis3r.scene import Scene
 from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL
@@ -61,7 +61,6 @@ def stitch(
     Library warnings never escape: they become lines of ``report["warnings"]``.
     """
     options = (options or StitchOptions()).replace(**overrides)
-    options = options.replace(device=resolve_device(options.device))
     timer = StageTimer(quiet=quiet)
     log = WarningLog(timer)
     with log.capture():
@@ -153,9 +152,8 @@ class Composite:
 def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: StageTimer) -> Composite:
     """Render, fill holes, blend and (optionally) refine the canvas of input ``ref_index``."""
     sub = timer.child(f"ref {ref_index}: " if options.ref == "all" else "")
-    device = options.device
     with sub.stage("render"):
-        canvas = render_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale, device)
+        canvas = render_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale)
     with sub.stage("fill holes"):
         filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius)
     with sub.stage("blend"):
@@ -166,9 +164,12 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
     mask = stitch_mask(canvas.occupied, filled.hole)
     refine = resolve_refine(options.refine, options.refine_weights)
     if refine == "rddm":
+        # Only the refiner needs torch: a stitch that does not refine never imports it.
+        from pis3r.refine.canvas import refine_canvas
+
         with sub.stage("refine"):
-            image = refine_canvas(image, mask, options.refine_region, options.refine_steps, device,
-                                  options.refine_weights)
+            image = refine_canvas(image, mask, options.refine_region, options.refine_steps,
+                                  resolve_device(options.device), options.refine_weights)
     return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine)
 
 

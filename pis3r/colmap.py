@@ -15,7 +15,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pis3r import io
 from pis3r.camera import Camera
@@ -28,6 +27,8 @@ SUBSAMPLE_SEED = 0
 
 def colmap_quaternion(R: np.ndarray) -> np.ndarray:
     """``(4,)`` COLMAP quaternion ``qw, qx, qy, qz`` of a world-to-camera rotation ``(3, 3)``, ``qw >= 0``."""
+    from scipy.spatial.transform import Rotation  # only when exporting: importing pis3r stays fast
+
     qx, qy, qz, qw = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     q = np.array([qw, qx, qy, qz])
     return -q if qw < 0 else q

@@ -64,11 +64,17 @@ def downscaled(photo: Photo, factor: float) -> Photo:
         photo.focal_evidence,
     )
 
+# A float image whose maximum is above this is on the 0..255 scale: resampling a [0, 1]
+# image overshoots by far less, and a 0..255 image this dark is black either way.
+FLOAT_255_ABOVE = 2.0
+
 
 def to_float_rgb(array: np.ndarray, name: str = "image") -> np.ndarray:
     """Any ``(H, W)``, ``(H, W, 1|3|4)`` uint8/uint16/float array to ``(H, W, 3)`` float32 in [0, 1].
 
-    Alpha is dropped (the colour underneath is kept); grey is repeated to RGB.
+    Alpha is dropped (the colour underneath is kept); grey is repeated to RGB. A float
+    array is taken to be in [0, 1] (a bicubic resize overshoots a little: clipped) unless
+    its maximum exceeds ``FLOAT_255_ABOVE``, then it is 0..255 (or scaled by its maximum).
     """
     a = np.asarray(array)
     if a.ndim == 3 and a.shape[2] == 1:
@@ -92,7 +98,7 @@ def to_float_rgb(array: np.ndarray, name: str = "image") -> np.ndarray:
         out = a.astype(np.float32)
         if not np.all(np.isfinite(out)):
             raise InputError(f"{name}: image has NaN or infinite values")
-        if out.size and out.max() > 1.0 + 1e-3:
+        if out.size and out.max() > FLOAT_255_ABOVE:
             out = out / 255.0 if out.max() <= 255.0 else out / out.max()
     else:
         raise InputError(f"{name}: unsupported pixel type {a.dtype}")

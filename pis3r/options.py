@@ -24,8 +24,7 @@ from pis3r.device import DEFAULT_DEVICE, DEVICES
 from pis3r.errors import InvalidOptionError
 from pis3r.reconstruct.base import BACKEND_CHOICES, DEFAULT_BACKEND
 from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD
-from pis3r.refine import DEFAULT_REFINE, REFINE_METHODS
-from pis3r.refine.canvas import DEFAULT_REGION, DEFAULT_STEPS, REGIONS
+from pis3r.refine import DEFAULT_REFINE, DEFAULT_REGION, DEFAULT_STEPS, REFINE_METHODS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
 from pis3r.stitch.choose import DEFAULT_DEPTH_FILL_CHOICE, DEFAULT_MODEL, DEPTH_FILL_CHOICES, MODEL_CHOICES
 from pis3r.stitch.holes import DEFAULT_HOLE_RADIUS
@@ -73,7 +72,8 @@ class StitchOptions:
         "band of the reference.", choices=MODEL_CHOICES)
     depth_fill: str = _option(
         DEFAULT_DEPTH_FILL_CHOICE, "3-D model: extend depth where one view sees the scene by continuing local "
-        "planes (planar) or by smooth inverse depth (harmonic); auto chooses by the held-back band.",
+        "planes (planar), by smooth inverse depth (harmonic) or by continuing the scene's dominant planes "
+        "unbroken (planes); auto chooses by the held-back band.",
         choices=DEPTH_FILL_CHOICES)
     hole_radius: int = _option(
         DEFAULT_HOLE_RADIUS, "Radius (px) of the closing disk: gaps up to about twice this are inpainted.",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from pis3r.errors import InputError
-from pis3r.stitch.blend import blend_reference_border, border_distance
+from pis3r.stitch.blend import blend_reference_border, border_distance, local_gain
 
 OFFSET, SIZE = (80, 50), (160, 120)  # reference at canvas (x, y), (w, h)
 
@@ -75,3 +75,32 @@ def test_background_stays_and_unknown_method_is_refused(exposure_step):
 def test_border_distance_signs():
     distance = border_distance((5, 6), (2, 1), (2, 3))
     assert distance[2, 2] == 1 and distance[2, 0] == -2 and distance[0, 0] == pytest.approx(-np.hypot(2, 1))
+
+
+@pytest.mark.parametrize("into_reference", [False, True])
+def test_feather_is_the_ramp_between_toned_and_original_layers_at_every_pixel(exposure_step, into_reference):
+    # The definition, computed densely over the whole canvas; the stage computes it only
+    # where pixels can change. Half of the overlap is missing, so the original layer
+    # beneath the reference mixes the other views' colours and the reference's.
+    canvas, under, window = exposure_step
+    under_valid = np.zeros(under.shape[:2], bool)
+    under_valid[:, ::2] = True
+    editable = np.ones(canvas.shape[:2], bool)
+    editable[:10] = False
+    out = blend_reference_border(canvas, OFFSET, under, under_valid, editable, "feather", into_reference)
+    (x0, y0), (w, h) = OFFSET, SIZE
+    band = 0.1 * min(h, w)
+    gain = local_gain(canvas[window], under, under_valid, sigma=band / 2)
+    rows = np.clip(np.arange(canvas.shape[0]) - y0, 0, h - 1)
+    cols = np.clip(np.arange(canvas.shape[1]) - x0, 0, w - 1)
+    toned = np.clip(canvas * gain[rows[:, None], cols[None, :]], 0, 1)
+    toned[window] = canvas[window]
+    original = canvas.copy()
+    original[window] = np.where(under_valid[..., None], under, canvas[window])
+    distance = border_distance(canvas.shape[:2], OFFSET, SIZE)
+    weight = np.clip(0.5 + distance / (2 * band) if into_reference else 1 + distance / band, 0, 1)[..., None]
+    expected = np.clip(weight * toned + (1 - weight) * original, 0, 1)
+    changeable = editable.copy()
+    changeable[window] = into_reference
+    expected = np.where(changeable[..., None], expected, canvas)
+    np.testing.assert_allclose(out, expected, atol=1e-6)

@@ -31,9 +31,10 @@ def test_band_psnr_rewards_right_pixels_and_charges_uncovered_ones_a_mean_guess(
 
 def test_candidates_follow_the_model_and_depth_fill_choices():
     assert candidates("band", "auto") == [Candidate("homography"), Candidate("3d", "planar"),
-                                          Candidate("3d", "harmonic")]
+                                          Candidate("3d", "harmonic"), Candidate("3d", "planes")]
     assert candidates("auto", "auto") == []
-    assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic")]
+    assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic"),
+                                          Candidate("3d", "planes")]
     assert candidates("band", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic")]
     assert candidates("homography", "planar") == [Candidate("homography")]
 
@@ -51,7 +52,7 @@ def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candida
     result = pis3r.stitch(list(small_pair), backend="classical", model="band", depth_fill="auto")
     choice = result.report["model_choice"]
     assert [(c["model"], c["depth_fill"]) for c in choice["candidates"]] == [
-        ("homography", None), ("3d", "planar"), ("3d", "harmonic")]
+        ("homography", None), ("3d", "planar"), ("3d", "harmonic"), ("3d", "planes")]
     scores = [c["band_psnr"] if c["band_psnr"] is not None else -math.inf for c in choice["candidates"]]
     best = choice["candidates"][int(np.argmax(scores))]
     assert choice["chosen"] == {"model": best["model"], "depth_fill": best["depth_fill"]}

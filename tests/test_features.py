@@ -122,3 +122,19 @@ def test_affine_detection_returns_full_resolution_rootsift_points():
     # (points found in tilted views map back to within a few pixels of the image)
     assert features.points.min() > -4 and features.points.max() < 516 and features.points.max() > 480
     np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_mutual_matching_is_the_two_way_ratio_test_of_opencvs_brute_force_neighbours(pair):
+    a, b = detect(pair[0]), detect(pair[1])
+    forward = cv2.BFMatcher(cv2.NORM_L2).knnMatch(a.descriptors, b.descriptors, k=2)
+    backward = cv2.BFMatcher(cv2.NORM_L2).knnMatch(b.descriptors, a.descriptors, k=2)
+    expected = [
+        (m.queryIdx, m.trainIdx) for m, second in forward
+        if m.distance < 0.85 * second.distance
+        and backward[m.trainIdx][0].trainIdx == m.queryIdx
+        and backward[m.trainIdx][0].distance < 0.85 * backward[m.trainIdx][1].distance
+    ]
+    found = match(a, b)
+    assert len(expected) > 50
+    assert np.array_equal(found.pts_a, a.points[[i for i, _ in expected]])
+    assert np.array_equal(found.pts_b, b.points[[j for _, j in expected]])

@@ -1,5 +1,6 @@
 import io as _io
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image, ImageOps
@@ -77,6 +78,17 @@ def test_array_conversion_rules():
         to_float_rgb(np.zeros((0, 5, 3), np.uint8))
     with pytest.raises(InputError):
         to_float_rgb(np.full((4, 4, 3), np.nan, np.float32))
+
+
+def test_a_float_image_resized_bicubically_keeps_its_scale():
+    # Bicubic upscaling of a [0, 1] image overshoots past 1 at sharp edges: still [0, 1], not 0..255.
+    edge = np.zeros((8, 8, 3), np.float32)
+    edge[:, 4:] = 1.0
+    upscaled = cv2.resize(edge, (32, 32), interpolation=cv2.INTER_CUBIC)
+    assert upscaled.max() > 1.05
+    converted = to_float_rgb(upscaled)
+    assert converted.max() == 1.0 and converted[:, -1].min() == 1.0
+    np.testing.assert_allclose(to_float_rgb(edge * 255.0), edge)
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):

@@ -8,8 +8,8 @@ import torch
 from click.testing import CliRunner
 
 from pis3r.errors import WeightsError
-from pis3r.refine import default_weights_path, refine_canvas
-from pis3r.refine.canvas import predict_tiled, refine_array, region_weights, tile_starts
+from pis3r.refine import default_weights_path
+from pis3r.refine.canvas import predict_tiled, refine_canvas, refine_array, region_weights, tile_starts
 from pis3r.refine.model import load_refiner, new_refiner, save_refiner
 from pis3r.refine.rddm import (
     OBJECTIVE_CHANNELS,
@@ -242,10 +242,10 @@ def test_missing_or_corrupt_weights_raise_weights_error(tmp_path):
 
 
 def test_default_weights_path_finds_the_shipped_file_or_none(tmp_path, monkeypatch):
-    import pis3r.refine.model as refine_model
+    import pis3r.refine
 
     shipped = tmp_path / "rddm.safetensors"
-    monkeypatch.setattr(refine_model, "SHIPPED_WEIGHTS", shipped)
+    monkeypatch.setattr(pis3r.refine, "SHIPPED_WEIGHTS", shipped)
     assert default_weights_path() is None
     shipped.write_bytes(b"weights")
     assert default_weights_path() == shipped

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -44,3 +45,24 @@ def test_indices_must_match_the_views():
     with pytest.raises(ValueError, match="2 views but 1 indices"):
         Scene((_view("a"), _view("b")), indices=(0,))
     assert Scene((_view("a"), _view("b"))).indices == (0, 1)
+
+
+def test_a_view_registered_to_another_view_lands_in_the_world_of_that_view():
+    # World: camera a at R_a, t_a; camera c seen from a's frame at scale 1/2 of the world.
+    R_a = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))[0]
+    anchor = Camera(np.diag([100.0, 100.0, 1.0]), R_a, np.array([0.3, -0.1, 0.2]), 8, 6)
+    R_ca = cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]
+    pair_view = dataclasses.replace(_view("c", t=(-0.5, 0.0, 0.1)),
+                                    camera=Camera(anchor.K, R_ca, np.array([-0.5, 0.0, 0.1]), 8, 6))
+    world = pair_view.in_world_of(anchor, 2.0)
+    # A world point seen by c: its coordinates in a's frame (at the pair's scale) map to c's
+    # pixel the same way before and after.
+    X = np.array([0.4, 0.2, 5.0])
+    in_anchor = R_a @ X + anchor.t  # world units, a's frame
+    seen_from_pair = R_ca @ (in_anchor / 2.0) + pair_view.camera.t
+    seen_in_world = world.camera.R @ X + world.camera.t
+    assert np.allclose(seen_in_world, 2.0 * seen_from_pair)
+    assert np.allclose(world.depth, 2.0 * pair_view.depth)
+    # Anchored at the identity, it is a rescaling.
+    same = pair_view.in_world_of(Camera.identity(anchor.K, 8, 6), 3.0)
+    assert np.allclose(same.camera.t, pair_view.rescaled(3.0).camera.t) and np.allclose(same.camera.R, R_ca)

@@ -9,6 +9,7 @@ its epipolar distance and by its triangulation angle; what fails gets confidence
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -73,13 +74,16 @@ def measure_pair(
     matching); ``x_b = R x_a + t``; ``H_ab`` maps pixels of a to b (pre-warp).
     """
     gray_a, gray_b = to_gray_u8(image_a), to_gray_u8(image_b)
-    to_b = _flow_to_other(gray_a, gray_b, H_ab)
-    to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
     R_ba, t_ba = R.T, -R.T @ t
-    return (
-        _depth_from_flow(to_b, to_a, K_a, K_b, R, t, gray_a),
-        _depth_from_flow(to_a, to_b, K_b, K_a, R_ba, t_ba, gray_b),
-    )
+    # The two directions are independent and spend their time in OpenCV and numpy, which
+    # release the GIL: one thread each.
+    with ThreadPoolExecutor(2) as pool:
+        flow_to_b = pool.submit(_flow_to_other, gray_a, gray_b, H_ab)
+        to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
+        to_b = flow_to_b.result()
+        depth_a = pool.submit(_depth_from_flow, to_b, to_a, K_a, K_b, R, t, gray_a)
+        depth_b = _depth_from_flow(to_a, to_b, K_b, K_a, R_ba, t_ba, gray_b)
+        return depth_a.result(), depth_b
 
 
 def _depth_from_flow(forward, backward, K_a, K_b, R, t, gray_a) -> DepthMeasurement:

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from pis3r.camera import intrinsics
 from pis3r.features import Matches
@@ -114,6 +113,9 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
     rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
     ``refine_focal`` both focals scale together (their ratio is kept)."""
+    # scipy only where poses are refined: importing pis3r stays fast (issue 12).
+    from scipy.optimize import least_squares
+
     rays_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ np.linalg.inv(K_a).T
     rays_b = np.hstack([matches.pts_b, np.ones((len(matches), 1))]) @ np.linalg.inv(K_b).T
     # Kabsch start: the rotation that best aligns the unit rays.
@@ -128,7 +130,7 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
         if refine_focal:
             Ka[:2, :2] *= np.exp(p[3])
             Kb[:2, :2] *= np.exp(p[3])
-        return Rotation.from_rotvec(p[:3]).as_matrix() @ R0, Ka, Kb
+        return cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R0, Ka, Kb
 
     def transfer(p):
         R, Ka, Kb = unpack(p)

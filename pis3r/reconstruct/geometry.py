@@ -10,8 +10,6 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from pis3r.camera import intrinsics, sampson_distance
 from pis3r.features import Matches
@@ -122,12 +120,15 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     put back on the right side of the twisted-pair ambiguity (points in front of both
     cameras), which the Sampson error cannot see.
     """
+    # scipy only where poses are refined: importing pis3r stays fast (issue 12).
+    from scipy.optimize import least_squares
+
     scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
     t = t / np.linalg.norm(t)
     refine_focal = focal_prior is not None
 
     def unpack(p):
-        Rm = Rotation.from_rotvec(p[:3]).as_matrix() @ R
+        Rm = cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R
         theta, phi = p[3], p[4]
         tv = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
         Ka, Kb = K_a.copy(), K_b.copy()

@@ -14,6 +14,12 @@ Both strategies solve a screened, colour-weighted Laplacian system (the
   continues ground and facades linearly into the unseen part (held within a
   factor ``PLANE_LEASH`` of the harmonic solution, so mixed or noisy planes cannot
   run away); a final screened solve keeps the measured values where they exist.
+- ``planes``: the scene's dominant planes (ground, facades: :func:`dominant_planes`,
+  sequential RANSAC on the seeds in inverse depth) continue unbroken, each to the image
+  edge or its horizon, over the part of the image it owns; ownership is a random walk
+  (Grady 2006) on the same colour-weighted grid, seeded by the measured pixels each plane
+  explains and by the off-plane ones, so a region inherits the surface of the measured
+  region it is joined to. Where off-plane measurements own the pixel, ``planar`` fills.
 
 Inverse depth is clamped from below by a far-plane prior, so surfaces extrapolated
 past the horizon (sky, distant background) become very far instead of flipping
@@ -22,21 +28,37 @@ behind the camera.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 # How depth is continued where one view sees the scene (module docstring).
-DEPTH_FILLS = ("planar", "harmonic")
+DEPTH_FILLS = ("planar", "harmonic", "planes")
 DEFAULT_DEPTH_FILL = "planar"
 SOLVE_MAX_SIDE = 256
 PLANE_WINDOW = 7
 PLANE_LEASH = 1.25
+# Dominant planes: a seed lies on a plane when its inverse depth is within this relative
+# residual; a plane must explain this share of the seeds; at most MAX_PLANES, each the
+# best of PLANE_TRIALS random triples (seeded: the same pair always gets the same planes).
+PLANE_TOLERANCE = 0.03
+PLANE_MIN_SHARE = 0.1
+MAX_PLANES = 4
+PLANE_TRIALS = 256
+PLANE_SAMPLE = 20_000
+# A continued plane is not trusted beyond this many times the nearest measured inverse depth.
+PLANE_NEAR_LIMIT = 4.0
 
 
 def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
     """Weighted graph Laplacian ``(N, N)`` of the 4-neighbour grid of ``guide (h, w, 3)``."""
+    # scipy only where depth is solved for: importing pis3r stays fast (issue 12).
+    import scipy.sparse as sp
+
     h, w = guide.shape[:2]
     idx = np.arange(h * w).reshape(h, w)
     lab = cv2.cvtColor(guide.astype(np.float32), cv2.COLOR_RGB2LAB) / np.array([100.0, 127.0, 127.0], np.float32)
@@ -57,6 +79,9 @@ def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
 
 def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float) -> np.ndarray:
     """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
     A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsc().astype(np.float64)
     # Minimum-degree ordering suits the symmetric grid system (faster than COLAMD).
     return splu(A, permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
@@ -124,18 +149,26 @@ def propagate_inverse_depth(
     weight = np.where(seeds, small_conf, 0.0).ravel()
     if method not in DEPTH_FILLS:
         raise ValueError(f"unknown propagation method {method!r}")
-    solved = screened_solve(L, np.stack([small.ravel(), weight], -1), weight, smoothness)
+    planes, owners = (dominant_planes(small, seeds, small_conf) if method == "planes"
+                      else (np.zeros((0, 3)), np.zeros((sh, sw), np.int64)))
+    # One system, several right-hand sides: the harmonic fill, its reach and, for
+    # ``planes``, every label's share of the random walk (planes, then off-plane).
+    labels = [(owners.ravel() == k) * weight for k in range(len(planes) + 1)] if len(planes) else []
+    solved = screened_solve(L, np.stack([small.ravel(), weight, *labels], -1), weight, smoothness)
     dense, reach = solved[:, 0], solved[:, 1]
-    if method == "planar":
+    v, u = np.mgrid[0:sh, 0:sw].astype(np.float64)
+    if method in ("planar", "planes"):
         params, plane_w = _local_planes(small, np.where(seeds, small_conf, 0.0), PLANE_WINDOW)
         pw = plane_w.ravel()
         fields = screened_solve(L, params.reshape(-1, 3), pw, smoothness)
-        v, u = np.mgrid[0:sh, 0:sw].astype(np.float64)
         planar = fields[:, 0] * u.ravel() + fields[:, 1] * v.ravel() + fields[:, 2]
         # Far from their seeds, mixed or noisy planes can run away; stay within a
         # factor PLANE_LEASH of the harmonic solution (in inverse depth).
         harmonic = np.maximum(dense, far)
         planar = np.clip(planar, harmonic / PLANE_LEASH, harmonic * PLANE_LEASH)
+        if len(planes):
+            planar = _continue_planes(planar, planes, solved[:, 2:], u.ravel(), v.ravel(), far,
+                                      PLANE_NEAR_LIMIT * float(small[seeds].max()))
         # Measurements where they exist, the extrapolated planes elsewhere.
         prior = 0.02
         blended = (weight * small.ravel() + prior * planar) / (weight + prior)
@@ -148,3 +181,59 @@ def propagate_inverse_depth(
     out = np.where(measured, idepth, dense).astype(np.float32)
     out_conf = np.where(measured, conf, 0.5 * reach).astype(np.float32)
     return out, out_conf
+
+
+def dominant_planes(idepth: np.ndarray, seeds: np.ndarray, conf: np.ndarray,
+                    tolerance: float = PLANE_TOLERANCE) -> tuple[np.ndarray, np.ndarray]:
+    """Sequential RANSAC for planes ``1/z = a u + b v + c`` among the ``seeds`` ``(h, w)``
+    bool of ``idepth`` ``(h, w)`` (weights ``conf``): the plane that explains the most seeds
+    within ``tolerance`` (relative), refitted on them by weighted least squares, then the
+    next among the rest, while one explains ``PLANE_MIN_SHARE`` of all seeds.
+
+    Returns ``planes`` ``(K, 3)`` and ``owners`` ``(h, w)`` int: the plane each seed lies
+    on, ``K`` for off-plane seeds (``-1`` where there is no seed)."""
+    rng = np.random.default_rng(0)
+    h, w = idepth.shape
+    rows, cols = np.nonzero(seeds)
+    design = np.stack([cols, rows, np.ones_like(cols)], 1).astype(np.float64)
+    z, c = idepth[rows, cols].astype(np.float64), conf[rows, cols].astype(np.float64)
+    free = np.ones(len(z), bool)
+    planes, owner = [], np.full(len(z), -1, np.int64)
+    while len(planes) < MAX_PLANES and free.sum() >= PLANE_MIN_SHARE * len(z) >= 3:
+        pool = np.flatnonzero(free)
+        scored = rng.choice(pool, min(len(pool), PLANE_SAMPLE), replace=False)
+        triples = pool[rng.integers(0, len(pool), (PLANE_TRIALS, 3))]
+        systems = design[triples]
+        # Collinear or repeated triples determine no plane.
+        solvable = np.abs(np.linalg.det(systems)) > 1e-6
+        if not solvable.any():
+            break
+        hypotheses = np.linalg.solve(systems[solvable], z[triples][solvable][..., None])[..., 0]
+        residual = np.abs(hypotheses @ design[scored].T - z[scored]) <= tolerance * z[scored]
+        best = hypotheses[int(np.argmax(residual.sum(axis=1)))]
+        on = free & (np.abs(design @ best - z) <= tolerance * z)
+        if on.sum() < 3:
+            break
+        sw = np.sqrt(c[on])
+        plane = np.linalg.lstsq(design[on] * sw[:, None], z[on] * sw, rcond=None)[0]
+        on = free & (np.abs(design @ plane - z) <= tolerance * z)
+        if on.sum() < PLANE_MIN_SHARE * len(z):
+            break
+        owner[on] = len(planes)
+        planes.append(plane)
+        free &= ~on
+    owner[free] = len(planes)
+    owners = np.full((h, w), -1, np.int64)
+    owners[rows, cols] = owner
+    return np.array(planes).reshape(-1, 3), owners
+
+
+def _continue_planes(planar, planes, shares, u, v, far, near_limit):
+    """``planar`` ``(N,)`` with every pixel whose largest random-walk share ``shares``
+    ``(N, K + 1)`` is a plane's (not the off-plane column) set to that plane's inverse
+    depth at ``(u, v)``, where it lies between ``far`` and ``near_limit``."""
+    winner = np.argmax(shares, axis=1)
+    on_plane = winner < len(planes)
+    value = np.einsum("nk,nk->n", planes[np.minimum(winner, len(planes) - 1)], np.stack([u, v, np.ones_like(u)], 1))
+    usable = on_plane & (value > far) & (value < near_limit)
+    return np.where(usable, value, planar)

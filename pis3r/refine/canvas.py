@@ -22,14 +22,11 @@ import numpy as np
 import torch
 
 from pis3r.errors import InputError, WeightsError
-from pis3r.refine.model import Refiner, default_weights_path, load_refiner
+from pis3r.refine import REGIONS, default_weights_path
+from pis3r.refine.model import Refiner, load_refiner
 from pis3r.refine.rddm import sample
 from pis3r.stitch.mask import MaskValue
 
-REGIONS = ("holes", "all")
-# Chosen by the refinement ablation (pis3r/refine/weights/MODEL_CARD.md).
-DEFAULT_REGION = "holes"
-DEFAULT_STEPS = 5
 HOLE_MARGIN = 2
 FEATHER = 4
 SPECKLE_THRESHOLD = 0.25

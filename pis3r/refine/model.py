@@ -14,8 +14,6 @@ from pis3r.errors import WeightsError
 from pis3r.refine.rddm import OBJECTIVE_CHANNELS, Schedule, linear_schedule
 from pis3r.refine.unet import UNet, UNetConfig
 
-WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
-SHIPPED_WEIGHTS = WEIGHTS_DIR / "rddm.safetensors"
 FORMAT = "pis3r-rddm/1"
 
 
@@ -65,11 +63,6 @@ def save_refiner(refiner: Refiner, path: str | Path, state: dict[str, torch.Tens
     tmp.replace(path)
     path.chmod(0o644)  # safetensors creates 0600 files; weights are meant to be shared
     return path
-
-
-def default_weights_path() -> Path | None:
-    """The refiner weights shipped inside the package, or ``None`` when they are absent."""
-    return SHIPPED_WEIGHTS if SHIPPED_WEIGHTS.is_file() else None
 
 
 def load_refiner(path: str | Path, device: str | torch.device = "cpu") -> Refiner:

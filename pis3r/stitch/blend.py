@@ -37,8 +37,14 @@ MAX_MULTIBAND_LEVELS = 6
 def border_distance(shape: tuple[int, int], ref_offset: tuple[int, int], ref_size: tuple[int, int]) -> np.ndarray:
     """``(H, W)`` float32 signed distance in pixels to the border of the reference window:
     positive inside (distance to the nearest edge pixel + 1), negative outside (Euclidean)."""
-    (height, width), (x0, y0), (w, h) = shape, ref_offset, ref_size
-    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+    ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float32)
+    return border_distance_at(ys, xs, ref_offset, ref_size)
+
+
+def border_distance_at(ys: np.ndarray, xs: np.ndarray, ref_offset: tuple[int, int],
+                       ref_size: tuple[int, int]) -> np.ndarray:
+    """:func:`border_distance` at the pixels ``(ys, xs)`` (float32 arrays of one shape)."""
+    (x0, y0), (w, h) = ref_offset, ref_size
     dx = np.maximum(np.maximum(x0 - xs, xs - (x0 + w - 1)), 0)
     dy = np.maximum(np.maximum(y0 - ys, ys - (y0 + h - 1)), 0)
     inside = np.minimum(np.minimum(xs - x0, x0 + w - 1 - xs), np.minimum(ys - y0, y0 + h - 1 - ys)) + 1
@@ -123,8 +129,20 @@ def blend_reference_border(
     window = (slice(offset[1], offset[1] + h), slice(offset[0], offset[0] + w))
     reference = crop[window]
 
-    # Gain of the nearest reference pixel, carried outward: clamp coordinates into the window.
     gain = local_gain(reference, under, under_valid, sigma=band / 2)
+    changeable = editable[box].copy()
+    changeable[window] = into_reference
+    out = image.copy()
+    if method == "feather":
+        # Each pixel's blend is its own: compute it only where the canvas may change (a
+        # band around the reference), not over the whole box. Deeper than a band inside
+        # the reference the weight is 1 there: the reference itself.
+        inner = int(np.ceil(band))
+        changeable[offset[1] + inner : offset[1] + h - inner, offset[0] + inner : offset[0] + w - inner] = False
+        ys, xs = np.nonzero(changeable)
+        out[box][ys, xs] = _feather_at(crop, ys, xs, offset, gain, under, under_valid, band, into_reference)
+        return out
+    # Gain of the nearest reference pixel, carried outward: clamp coordinates into the window.
     rows = np.clip(np.arange(crop.shape[0]) - offset[1], 0, h - 1)
     cols = np.clip(np.arange(crop.shape[1]) - offset[0], 0, w - 1)
     toned = np.clip(crop * gain[rows[:, None], cols[None, :]], 0.0, 1.0)
@@ -132,20 +150,36 @@ def blend_reference_border(
     # The original layer shows, beneath the reference, what the other views saw there.
     original = crop.copy()
     original[window] = np.where(under_valid[..., None], under, reference)
-
-    distance = border_distance(crop.shape[:2], offset, (w, h))
-    if into_reference:
-        # The ramp spans a band on each side of the border.
-        weight = np.clip(0.5 + distance / (2 * band), 0.0, 1.0)
-    else:
-        weight = np.clip(1.0 + distance / band, 0.0, 1.0)
-    if method == "feather":
-        blended = weight[..., None] * toned + (1 - weight[..., None]) * original
-    else:
-        blended = laplacian_blend(toned, original, weight, levels)
-
-    changeable = editable[box].copy()
-    changeable[window] = into_reference
-    out = image.copy()
+    weight = _ramp(border_distance(crop.shape[:2], offset, (w, h)), band, into_reference)
+    blended = laplacian_blend(toned, original, weight, levels)
     out[box][changeable] = np.clip(blended[changeable], 0.0, 1.0)
     return out
+
+
+def _ramp(distance: np.ndarray, band: float, into_reference: bool) -> np.ndarray:
+    """Weight of the toned layer at a signed ``distance`` to the reference border."""
+    if into_reference:
+        # The ramp spans a band on each side of the border.
+        return np.clip(0.5 + distance / (2 * band), 0.0, 1.0)
+    return np.clip(1.0 + distance / band, 0.0, 1.0)
+
+
+def _feather_at(crop, ys, xs, offset, gain, under, under_valid, band, into_reference) -> np.ndarray:
+    """``(N, 3)`` feathered colours at the pixels ``(ys, xs)`` of ``crop``: toned by the gain
+    of the nearest reference pixel (``gain`` ``(h, w, 3)``), over the original layer (beneath
+    the reference, what the other views saw there: ``under`` where ``under_valid``)."""
+    h, w = under_valid.shape
+    rows, cols = ys - offset[1], xs - offset[0]
+    near_r, near_c = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
+    colour = crop[ys, xs]
+    toned = np.clip(colour * gain[near_r, near_c], 0.0, 1.0)
+    inside = (rows == near_r) & (cols == near_c)
+    # Inside the reference the toned layer is the reference itself.
+    toned[inside] = colour[inside]
+    original = colour.copy()
+    beneath = inside.copy()
+    beneath[inside] = under_valid[rows[inside], cols[inside]]
+    original[beneath] = under[rows[beneath], cols[beneath]]
+    distance = border_distance_at(ys.astype(np.float32), xs.astype(np.float32), offset, (w, h))
+    weight = _ramp(distance, band, into_reference)[:, None]
+    return np.clip(weight * toned + (1 - weight) * original, 0.0, 1.0)

@@ -221,16 +221,20 @@ def _exposure_gains(scene: Scene, raster: Raster, indices: list[int], window, re
     """``(len(indices), 3)`` float32: per layer, the robust per-channel gain that maps its
     view's colours onto the reference where its surface lands inside it (``window``: the
     reference's slices in the canvas), so a different exposure does not show as a frame."""
-    layer, uv = raster.layer[window].ravel(), raster.uv[window].reshape(-1, 2)
+    # A robust median needs far fewer samples than the reference has pixels: a regular
+    # grid of about GAIN_SAMPLES of them.
+    rows, cols = window
+    stride = max(1, int((ref_image.shape[0] * ref_image.shape[1] / GAIN_SAMPLES) ** 0.5))
+    grid = (slice(rows.start, rows.stop, stride), slice(cols.start, cols.stop, stride))
+    layer, uv = raster.layer[grid].ravel(), raster.uv[grid].reshape(-1, 2)
+    reference = ref_image[::stride, ::stride].reshape(-1, 3)
     gains = np.ones((len(indices), 3), np.float32)
     for k, index in enumerate(indices):
         chosen = np.flatnonzero(layer == k)
-        # A robust median needs far fewer samples than a canvas has pixels.
-        chosen = chosen[:: max(1, len(chosen) // GAIN_SAMPLES)]
         if len(chosen) < 100:
             continue
         ours = _sample_points(scene.views[index].image, uv[chosen])
-        theirs = ref_image.reshape(-1, 3)[chosen]
+        theirs = reference[chosen]
         # Saturated or black pixels carry no information about the gain.
         usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(axis=1)
         if int(usable.sum()) >= 100:
@@ -254,16 +258,16 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.
                             borderMode=cv2.BORDER_REPLICATE)
         if (gains[k] != 1).any():
             cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,), dst=sampled)
+        # Bicubic overshoots at sharp edges; a gain may push past white.
+        np.clip(sampled, 0.0, 1.0, out=sampled)
         np.copyto(image[box], sampled, where=mine[box][..., None])
-    # Bicubic overshoots at sharp edges; a gain may push past white.
-    return np.clip(image, 0.0, 1.0, out=image)
+    return image
 
 
 def render_to_canvas(
     scene: Scene,
     ref_index: int = 0,
     max_canvas_scale: float = DEFAULT_MAX_CANVAS_SCALE,
-    device: str = "cpu",
     match_exposure: bool = True,
     raster_backend: str = "auto",
     max_stretch: float = MAX_STRETCH,
@@ -277,11 +281,10 @@ def render_to_canvas(
     exposure does not show as a frame around the reference. ``raster_backend``:
     ``"auto"`` (OpenGL where an EGL context can be created, else numpy), ``"gl"`` or
     ``"numpy"`` (:mod:`pis3r.stitch.raster`). ``max_stretch``: see the module docstring
-    (``np.inf`` keeps every surface). ``device`` is accepted for the stage
-    contract: OpenGL runs on whatever device EGL offers (a GPU where present), and the
+    (``np.inf`` keeps every surface). There is no device
+    argument: OpenGL runs on whatever device EGL offers (a GPU where present), and the
     rest of the stage is OpenCV/numpy on the CPU.
     """
-    del device  # see the docstring: OpenGL picks its own device
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
     surfaces, counts = _surfaces(scene, ref_index, max_stretch)

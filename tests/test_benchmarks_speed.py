@@ -1,0 +1,42 @@
+"""The pure helpers of benchmarks/speed.py (issue 12): resizing to a megapixel target, the
+fountain views chosen, the growth ratio and the bar verdicts. Nothing is timed here."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "speed.py"
+_SPEC = importlib.util.spec_from_file_location("benchmarks_speed", _PATH)
+speed = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(speed)
+
+
+def test_resize_to_megapixels_keeps_the_aspect_both_ways():
+    image = np.full((100, 200, 3), 77, np.uint8)
+    assert speed.resize_to_megapixels(image, 0.005).shape == (50, 100, 3)
+    up = speed.resize_to_megapixels(image, 0.08)
+    assert up.shape == (200, 400, 3) and (up == 77).all()
+
+
+def test_fountain_views_are_the_reference_then_the_nearest_in_index_order():
+    names = [f"{i:04d}.jpg" for i in range(11)][::-1]
+    assert speed.fountain_views(names, 2) == ["0005.jpg", "0004.jpg"]
+    assert speed.fountain_views(names, 4) == ["0005.jpg", "0003.jpg", "0004.jpg", "0006.jpg"]
+    assert speed.fountain_views(names, 11) == ["0005.jpg"] + [f"{i:04d}.jpg" for i in range(11) if i != 5]
+
+
+def test_growth_is_the_cost_per_unit_at_the_largest_size_over_the_base():
+    assert speed.growth({0.5: 2.0, 1.0: 1.0, 12.0: 1.1}, 1.0) == 1.1
+    assert speed.growth({0.5: 2.0, 1.0: 1.0}, 1.0) is None
+    assert speed.growth({4: 1.0, 11: 0.5}, 2) is None
+    assert speed.growth({1.0: 1.0, 12.0: None}, 1.0) is None
+
+
+def test_bar_lines_pass_fail_and_not_measured():
+    values = {key: limit for _, key, limit in speed.BARS} | {"mp12_s": 10.5}
+    del values["view_growth"]
+    lines = dict(zip((key for _, key, _ in speed.BARS), speed.bar_lines(values)))
+    assert lines["eyot_ratio"].startswith("PASS") and "5.00" in lines["eyot_ratio"]
+    assert lines["mp12_s"].startswith("FAIL") and "10.50" in lines["mp12_s"]
+    assert lines["view_growth"].startswith("n/a")

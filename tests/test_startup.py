@@ -1,0 +1,43 @@
+"""Start-up cost (issue 12): the classical CPU path and ``--help`` never import torch.
+
+Timing is not asserted (benchmarks/speed.py measures it); what is asserted is the cause of
+the slow start: torch is a 2 s import, needed only by VGGT, the refiner and CUDA.
+"""
+
+import subprocess
+import sys
+
+import pytest
+
+STITCH_WITHOUT_TORCH = r"""
+import sys
+import numpy as np
+from skimage import data
+import pis3r
+
+photo = data.astronaut()[::2, ::2]
+result = pis3r.stitch([photo[20:180, 0:190].copy(), photo[30:190, 60:250].copy()], backend="classical")
+assert result.image.shape[1] > 190, result.image.shape
+print("torch" in sys.modules, "scipy" in sys.modules)
+"""
+
+
+def _python(*args: str) -> str:
+    proc = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return proc.stdout
+
+
+def test_a_classical_stitch_on_the_cpu_never_imports_torch():
+    assert _python("-c", STITCH_WITHOUT_TORCH).split() == ["False", "True"]
+
+
+@pytest.mark.parametrize("args", [["--help"], ["stitch", "--help"], ["batch", "--help"]])
+def test_help_imports_neither_torch_nor_scipy(args):
+    # What the installed ``pis3r`` script runs (pyproject: pis3r.cli:main).
+    code = ("import sys\nfrom pis3r.cli import main\n"
+            "try:\n    main(sys.argv[1:], prog_name='pis3r')\nexcept SystemExit:\n    pass\n"
+            "print('torch' in sys.modules, 'scipy' in sys.modules, file=sys.stderr)")
+    proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+    assert "Usage:" in proc.stdout
+    assert proc.stderr.split()[-2:] == ["False", "False"], proc.stderr[-2000:]
