@@ -57,9 +57,9 @@ def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candida
     best = choice["candidates"][int(np.argmax(scores))]
     assert choice["chosen"] == {"model": best["model"], "depth_fill": best["depth_fill"]}
     assert result.report["model"] == best["model"]
-    # A shift of the image plane is a homography: it predicts the band at least as well as
-    # the 3-D candidates, and nearly exactly.
-    assert scores[0] >= max(scores[1:]) - 0.5 and scores[0] > 25
+    # A shift of the image plane is a homography: it predicts the band nearly exactly, within
+    # 1 dB of the best 3-D candidate (the dominant-plane fill reconstructs that plane too).
+    assert scores[0] >= max(scores[1:]) - 1.0 and scores[0] > 25
 
 
 def test_forcing_a_model_skips_the_band_test(small_pair):
