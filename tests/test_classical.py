@@ -1,7 +1,10 @@
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from skimage import data
 
+import pis3r
 from pis3r.errors import InputError, NotEnoughOverlapError
 from pis3r.io import Photo
 from pis3r.reconstruct.options import ReconstructOptions
@@ -87,3 +90,31 @@ def test_identical_and_unrelated_images_are_refused():
     noise = Photo(np.random.default_rng(0).uniform(0, 1, (300, 300, 3)).astype(np.float32), "noise")
     with pytest.raises(NotEnoughOverlapError, match="do not overlap enough"):
         ClassicalReconstructor(ReconstructOptions()).reconstruct([photo, noise])
+
+
+def test_a_chain_of_views_is_registered_whole_when_the_last_ones_miss_the_reference():
+    # Five 300 px crops of one 1100 px wide picture, 190 px apart: each overlaps its
+    # neighbours only, so views 2-4 never overlap the reference (view 0).
+    picture = cv2.resize(data.astronaut(), (1100, 400), interpolation=cv2.INTER_AREA)
+    starts = (0, 190, 380, 570, 760)
+    crops = [picture[:, x:x + 300].copy() for x in starts]
+    result = pis3r.stitch(crops, backend="classical", max_canvas_scale=4.0)
+    assert result.report["dropped"] == [] and result.scene.indices == (0, 1, 2, 3, 4)
+    # The canvas is the whole picture, each view where it belongs: compare with it.
+    x0, y0 = result.ref_offset
+    width = min(result.image.shape[1] - x0, 1060)
+    canvas = result.image[y0:y0 + 400, x0:x0 + width]
+    truth = picture[:, :width].astype(np.float32) / 255
+    rendered = result.mask[y0:y0 + 400, x0:x0 + width] > 0
+    assert width >= 1040 and rendered[:, 960:].mean() > 0.9
+    mse = float(((canvas - truth)[rendered] ** 2).mean())
+    assert 10 * np.log10(1 / mse) > 25
+
+
+def test_a_view_that_overlaps_no_registered_view_is_dropped_with_the_reason():
+    picture = cv2.resize(data.astronaut(), (700, 400), interpolation=cv2.INTER_AREA)
+    unrelated = cv2.resize(data.coffee(), (300, 400), interpolation=cv2.INTER_AREA)
+    result = pis3r.stitch([picture[:, :300].copy(), picture[:, 200:500].copy(), unrelated], backend="classical")
+    assert result.scene.indices == (0, 1)
+    (dropped,) = result.report["dropped"]
+    assert dropped["index"] == 2 and "nor does it overlap any other registered image" in dropped["reason"]

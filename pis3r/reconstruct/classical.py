@@ -15,12 +15,14 @@ Works offline on any machine. For the reference (view 0) and every other view:
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
 from pis3r.camera import Camera
 from pis3r.errors import InputError, NotEnoughOverlapError, Pis3rError, ReconstructionError
-from pis3r.features import Matches
+from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
@@ -34,6 +36,9 @@ WORK_MAX_SIDE = 640
 # Relative jump of inverse depth between neighbours above which a pixel sits on a
 # depth edge: its point would be a "flying pixel" between fore- and background.
 DEPTH_EDGE_JUMP = 0.08
+# A view that does not overlap the reference tries this many registered views (those it
+# shares the most matches with) before it is dropped.
+CHAIN_ANCHORS = 3
 
 
 def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
@@ -45,7 +50,8 @@ def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
 
 
 class ClassicalReconstructor:
-    """Weight-free two-view (and star-shaped multi-view) reconstruction."""
+    """Weight-free two-view and multi-view reconstruction: every view registered to the
+    reference, or chained through the views it overlaps."""
 
     name = "classical"
 
@@ -62,44 +68,79 @@ class ClassicalReconstructor:
         return self.memo[key]
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
-        """Every photo registered to ``photos[0]``; with three or more photos, one that
-        cannot be registered is dropped (``Scene.dropped``) instead of failing the rest.
-        The model, parallax and match counts reported are the first registered pair's."""
+        """Every photo registered to ``photos[0]``, directly or, when it does not overlap
+        it, through a chain of registered photos (:meth:`_attach_through_others`); with
+        three or more photos, one that overlaps no registered photo is dropped
+        (``Scene.dropped``) instead of failing the rest. The model, parallax and match
+        counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = [self._memoised(("features", id(p)), lambda p=p: PhotoFeatures(p)) for p in photos]
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
-        views, indices, dropped, warnings, first = [], [], [], [], None
+        registered: dict[int, View] = {}
+        failures: dict[int, str] = {}
+        warnings, first = [], None
         for j in range(1, len(photos)):
             try:
                 # The flag's focal, or one the first pair's views already use, is final.
                 final = bool(self.options.focal) or first is not None
                 pair = self.pair_geometry(features[0], features[j], focal_ref, source, final, len(photos) > 2)
-                view_ref, view_j = self._views(ref, photos[j], pair, None if first is None else views[0].depth)
+                view_ref, view_j = self._views(ref, photos[j], pair, None if first is None else registered[0].depth)
             except Pis3rError as exc:
                 if len(photos) == 2:
                     raise
-                dropped.append(DroppedView(j, photos[j].name, str(exc)))
+                failures[j] = str(exc)
                 continue
             # Later pairs keep the first pair's reference focal.
             focal_ref, source = float(pair.K_a[0, 0]), pair.focal_source
             if first is None:
                 first = pair
-                views.append(view_ref)
-                indices.append(0)
+                registered[0] = view_ref
             warnings += pair.warnings
-            views.append(view_j)
-            indices.append(j)
+            registered[j] = view_j
         if first is None:
-            reasons = "; ".join(f"{d.name}: {d.reason}" for d in dropped)
+            reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
             raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
+        warnings += self._attach_through_others(photos, features, registered, failures)
+        indices = sorted(registered)
+        dropped = tuple(DroppedView(j, photos[j].name, reason) for j, reason in sorted(failures.items()))
         return Scene(
-            views, indices, tuple(dropped), model=first.model, model_reason=first.model_reason,
+            [registered[i] for i in indices], indices, dropped, model=first.model, model_reason=first.model_reason,
             focal=float(first.K_a[0, 0]), focal_source=first.focal_source, parallax=first.parallax,
             warnings=tuple(warnings),
             info={"backend": self.name, "num_matches": first.num_matches, **first.info},
         )
+
+    def _attach_through_others(self, photos: list[Photo], features: list[PhotoFeatures],
+                               registered: dict[int, View], failures: dict[int, str]) -> list[str]:
+        """Register each photo the reference could not (``failures``, index -> reason) to the
+        registered photo it shares the most matches with, trying the ``CHAIN_ANCHORS`` best;
+        its pose is composed with that photo's and its scale tied through that photo's depth
+        (:meth:`pis3r.scene.View.in_world_of`). Repeated while photos attach, so a chain of any
+        length reaches the reference. ``registered`` and ``failures`` are updated in place;
+        returns the warnings of the pairs that attached."""
+        warnings, attached = [], True
+        while failures and attached:
+            attached = False
+            for j in sorted(failures):
+                shared = {i: len(match(features[i].sift, features[j].sift)) for i in registered if i != 0}
+                for i in sorted(shared, key=lambda i: -shared[i])[:CHAIN_ANCHORS]:
+                    anchor = registered[i]
+                    try:
+                        pair = self.pair_geometry(features[i], features[j], float(anchor.camera.K[0, 0]),
+                                                  f"chained through {photos[i].name}", True, True)
+                        _, view_j = self._views(photos[i], photos[j], pair, anchor.depth)
+                    except Pis3rError:
+                        continue
+                    registered[j] = view_j.in_world_of(anchor.camera, 1.0)
+                    warnings += pair.warnings
+                    del failures[j]
+                    attached = True
+                    break
+        for j in failures:
+            failures[j] += "; nor does it overlap any other registered image"
+        return warnings
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
@@ -191,20 +232,24 @@ class ClassicalReconstructor:
             return meas_a, meas_b
 
         meas_a, meas_b = self._memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes()), measure)
-        views = []
-        for photo, image, meas, K, cam_R, cam_t in (
-            (ref, img_a, meas_a, K_a, np.eye(3), np.zeros(3)),
-            (other, img_b, meas_b, K_b, R, t),
-        ):
-            if not (meas.confidence > 0.05).any():
-                raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
-            idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
-            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.options.depth_fill)
-            dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
-            depth = np.where(_depth_edges(dense), 0.0, 1.0 / dense).astype(np.float32)
-            conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
-            views.append(View(photo.pixels, Camera(K, cam_R, cam_t, photo.width, photo.height), depth, conf, photo.name))
-        return tuple(views)
+        # The two views' depth fills are independent sparse solves (SuperLU releases the
+        # GIL): one thread each.
+        with ThreadPoolExecutor(2) as pool:
+            view_b = pool.submit(self._filled_view, other, img_b, meas_b, Camera(K_b, R, t, other.width, other.height))
+            view_a = self._filled_view(ref, img_a, meas_a, Camera.identity(K_a, ref.width, ref.height))
+            return view_a, view_b.result()
+
+    def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera) -> View:
+        """The view of ``photo`` with the depth measured on its working ``image`` filled
+        everywhere (``self.options.depth_fill``), at full resolution, cut at depth edges."""
+        if not (meas.confidence > 0.05).any():
+            raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
+        idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
+        dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.options.depth_fill)
+        dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
+        depth = np.where(_depth_edges(dense), 0.0, 1.0 / dense).astype(np.float32)
+        conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
+        return View(photo.pixels, camera, depth, conf, photo.name)
 
 
 def _add_sparse_seeds(meas: DepthMeasurement, pix: np.ndarray, pix_other: np.ndarray, K, K_other, R, t) -> None:
