@@ -162,21 +162,22 @@ class ClassicalReconstructor:
         return estimate_pair(ref.photo, other.photo, found, focal_ref, self._known_focal(other.photo)[0], source,
                              focal_is_final, self.options.model)
 
-    def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth) -> tuple[View, View]:
-        """The pair's two views; the other is brought to the scale of ``ref_depth`` (the
-        first pair's) when given."""
+    def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth) -> tuple[View | None, View]:
+        """The pair's two views. With ``ref_depth`` (``ref``'s depth in the scene already
+        built) only the other view, brought to that scale: the first is then ``None``."""
         if pair.model == "homography":
             view_ref, view_other = self._views_homography(ref, other, pair)
+            measured_ref = view_ref.depth
         else:
-            view_ref, view_other = self._views_3d(ref, other, pair)
-        if ref_depth is not None:
-            # Each pair has its own unknown scale; tie it to the first pair's through the
-            # reference depths both pairs measured.
-            ratio = _median_ratio(ref_depth, view_ref.depth)
-            if ratio is None:
-                raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
-            view_other = view_other.rescaled(ratio)
-        return view_ref, view_other
+            view_ref, view_other, measured_ref = self._views_3d(ref, other, pair, fill_ref=ref_depth is None)
+        if ref_depth is None:
+            return view_ref, view_other
+        # Each pair has its own unknown scale; tie it to the scene's through the depths both
+        # measured on ``ref``.
+        ratio = _median_ratio(ref_depth, measured_ref)
+        if ratio is None:
+            raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
+        return None, view_other.rescaled(ratio)
 
     # -- focal --------------------------------------------------------------------------
     def _known_focal(self, photo: Photo) -> tuple[float | None, str]:
@@ -213,7 +214,10 @@ class ClassicalReconstructor:
         )
 
     # -- depth: full 3-D model -----------------------------------------------------------
-    def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry):
+    def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry, fill_ref: bool = True):
+        """``(view_ref, view_other, measured_ref)``: both views with their depth filled (only
+        the other one without ``fill_ref``: ``view_ref`` is then ``None``) and the depth the
+        pair measured on ``ref`` ``(H, W)`` (0 where unmeasured)."""
         K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
         img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
         img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
@@ -232,12 +236,19 @@ class ClassicalReconstructor:
             return meas_a, meas_b
 
         meas_a, meas_b = self._memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes()), measure)
+        camera_a = Camera.identity(K_a, ref.width, ref.height)
+        camera_b = Camera(K_b, R, t, other.width, other.height)
+        # What the pair measured on ``ref`` (0 where nothing reliable), at full resolution.
+        measured_a = cv2.resize(np.where(meas_a.confidence > 0.05, meas_a.depth, 0.0).astype(np.float32),
+                                (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
+        if not fill_ref:
+            return None, self._filled_view(other, img_b, meas_b, camera_b), measured_a
         # The two views' depth fills are independent sparse solves (SuperLU releases the
         # GIL): one thread each.
         with ThreadPoolExecutor(2) as pool:
-            view_b = pool.submit(self._filled_view, other, img_b, meas_b, Camera(K_b, R, t, other.width, other.height))
-            view_a = self._filled_view(ref, img_a, meas_a, Camera.identity(K_a, ref.width, ref.height))
-            return view_a, view_b.result()
+            view_b = pool.submit(self._filled_view, other, img_b, meas_b, camera_b)
+            view_a = self._filled_view(ref, img_a, meas_a, camera_a)
+            return view_a, view_b.result(), measured_a
 
     def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera) -> View:
         """The view of ``photo`` with the depth measured on its working ``image`` filled
