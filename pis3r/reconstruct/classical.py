@@ -80,28 +80,45 @@ class ClassicalReconstructor:
         focal_ref, source = self._known_focal(ref)
         registered: dict[int, View] = {}
         failures: dict[int, str] = {}
-        warnings, first = [], None
-        for j in range(1, len(photos)):
+        warnings, first, later = [], None, list(range(1, len(photos)))
+        # The first pair that registers fixes the reference's focal, frame and scale.
+        while later and first is None:
+            j = later.pop(0)
             try:
-                # The flag's focal, or one the first pair's views already use, is final.
-                final = bool(self.options.focal) or first is not None
-                pair = self.pair_geometry(features[0], features[j], focal_ref, source, final, len(photos) > 2)
-                view_ref, view_j = self._views(ref, photos[j], pair, None if first is None else registered[0].depth)
+                pair = self.pair_geometry(features[0], features[j], focal_ref, source, bool(self.options.focal),
+                                          len(photos) > 2)
+                view_ref, view_j = self._views(ref, photos[j], pair, None)
             except Pis3rError as exc:
                 if len(photos) == 2:
                     raise
                 failures[j] = str(exc)
                 continue
-            # Later pairs keep the first pair's reference focal.
-            focal_ref, source = float(pair.K_a[0, 0]), pair.focal_source
-            if first is None:
-                first = pair
-                registered[0] = view_ref
+            first, registered[0], registered[j] = pair, view_ref, view_j
             warnings += pair.warnings
-            registered[j] = view_j
         if first is None:
             reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
             raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
+
+        def register_to_reference(j: int):
+            # OpenCV's random state is per thread: seeded here, each pair is repeatable
+            # whatever runs beside it.
+            cv2.setRNGSeed(0)
+            try:
+                # Later pairs keep the first pair's reference focal.
+                pair = self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
+                                          True, True)
+                return pair, self._views(ref, photos[j], pair, registered[0].depth)[1]
+            except Pis3rError as exc:
+                return exc, None
+
+        # Given the first pair, the others are independent: two at a time.
+        with ThreadPoolExecutor(2) as pool:
+            for j, (pair, view_j) in zip(later, list(pool.map(register_to_reference, later))):
+                if view_j is None:
+                    failures[j] = str(pair)
+                    continue
+                warnings += pair.warnings
+                registered[j] = view_j
         warnings += self._attach_through_others(photos, features, registered, failures)
         indices = sorted(registered)
         dropped = tuple(DroppedView(j, photos[j].name, reason) for j, reason in sorted(failures.items()))
