@@ -78,6 +78,22 @@ def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candida
     assert homography >= max(scores) - 0.5 and homography > 25
 
 
+def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypatch):
+    """A shift of the image plane: the backend's own test already picks the homography model,
+    so the forced homography is not reconstructed again and scores the same."""
+    from pis3r.stitch import choose
+
+    rendered = []
+    original = choose._render_band
+    monkeypatch.setattr(choose, "_render_band", lambda candidate, *args: rendered.append(candidate) or
+                        original(candidate, *args))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
+    assert rendered == [Candidate("auto")]
+    assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography")]
+    assert choice.scores[0].psnr == choice.scores[1].psnr and choice.chosen == Candidate("auto")
+
+
 def test_forcing_a_model_skips_the_band_test(small_pair):
     result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
     assert result.report["model_choice"]["candidates"] == []

@@ -134,12 +134,17 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     small = [_working_size(photo) for photo in photos]
     inner, margin, band = _hold_back_band(small[0])
     band_photos, memo = [inner, *small[1:]], {}
-    renders = [_render_band(candidate, band_photos, band.shape, margin, base, memo) for candidate in allowed]
-    reached = band & np.any([covered for _, covered, _ in renders], axis=0)
+    renders = []
+    for candidate in allowed:
+        # A scene of the homography model renders the pair's homography whichever candidate
+        # asked for it: the backend's own choice, when it is that, stands for the forced one.
+        same = [render for render in renders if candidate.model == "homography" and render[3] == "homography"]
+        renders.append(same[0] if same else _render_band(candidate, band_photos, band.shape, margin, base, memo))
+    reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
         BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
-        for candidate, (predicted, covered, error) in zip(allowed, renders)
+        for candidate, (predicted, covered, error, _) in zip(allowed, renders)
     )
     best = max(scores, key=lambda score: score.psnr)
     return ModelChoice(best.candidate if math.isfinite(best.psnr) else None, scores)
@@ -162,15 +167,16 @@ def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
 
 
 def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, int], margin: tuple[int, int],
-                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str]:
+                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str, str]:
     """What ``candidate`` predicts on the reference's grid ``shape`` from ``photos`` (the inner
     part first, at ``margin`` in the reference): ``(h, w, 3)`` colours, ``(h, w)`` bool covered,
-    and an error line when it cannot stitch them. ``memo`` is shared by the candidates."""
+    an error line when it cannot stitch them, and the scene's model (``""`` then). ``memo``
+    is shared by the candidates."""
     height, width = shape
     try:
         scene = ClassicalReconstructor(candidate.backend_options(base), memo).reconstruct(photos)
     except Pis3rError as exc:
-        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc)
+        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc), ""
     inner = photos[0]
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
@@ -178,7 +184,7 @@ def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, in
     filled = fill_holes(canvas.image, canvas.occupied)
     x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
     predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)
-    return predicted, covered, ""
+    return predicted, covered, "", scene.model
 
 
 def _window(image: np.ndarray, known: np.ndarray, x0: int, y0: int, width: int, height: int):
