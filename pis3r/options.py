@@ -68,8 +68,9 @@ class StitchOptions:
         low=0.0, high=1.0, kind=float)
     model: str = _option(
         DEFAULT_MODEL, "How the other views are explained: one homography (rotation or one plane) or a 3-D "
-        "scene. auto: the backend's degeneracy test; band: the candidate that best predicts a held-back "
-        "band of the reference.", choices=MODEL_CHOICES)
+        "scene. auto: the backend's degeneracy test or one homography, whichever best predicts a held-back "
+        "band of the reference; band: the best of every candidate (also 3-D with each depth fill and with "
+        "the focal at its prior).", choices=MODEL_CHOICES)
     depth_fill: str = _option(
         DEFAULT_DEPTH_FILL_CHOICE, "3-D model: extend depth where one view sees the scene by continuing local "
         "planes (planar), by smooth inverse depth (harmonic) or by continuing the scene's dominant planes "

@@ -31,11 +31,17 @@ def test_band_psnr_rewards_right_pixels_and_charges_uncovered_ones_a_mean_guess(
 
 def test_candidates_follow_the_model_and_depth_fill_choices():
     assert candidates("band", "auto") == [Candidate("homography"), Candidate("3d", "planar"),
-                                          Candidate("3d", "harmonic"), Candidate("3d", "planes")]
-    assert candidates("auto", "auto") == []
+                                          Candidate("3d", "harmonic"), Candidate("3d", "planes"),
+                                          Candidate("3d", "planar", "prior"), Candidate("3d", "harmonic", "prior"),
+                                          Candidate("3d", "planes", "prior")]
+    # The default: the backend's own explanation first (it wins a tie), then one homography.
+    assert candidates("auto", "planar") == [Candidate("auto"), Candidate("homography")]
+    assert candidates("auto", "auto") == [Candidate("auto", "planar"), Candidate("auto", "harmonic"),
+                                          Candidate("auto", "planes"), Candidate("homography")]
     assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic"),
-                                          Candidate("3d", "planes")]
-    assert candidates("band", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic")]
+                                        Candidate("3d", "planes")]
+    assert candidates("band", "harmonic") == [Candidate("homography"), Candidate("3d", "harmonic"),
+                                              Candidate("3d", "harmonic", "prior")]
     assert candidates("homography", "planar") == [Candidate("homography")]
 
 
@@ -43,34 +49,63 @@ def test_nothing_to_choose_runs_no_band_test():
     photos = [Photo(np.zeros((8, 8, 3), np.float32), "a"), Photo(np.zeros((8, 8, 3), np.float32), "b")]
     forced = choose_model(photos, "classical", ReconstructOptions(), model="homography")
     assert forced.chosen == Candidate("homography") and forced.scores == ()
-    assert choose_model(photos, "classical", ReconstructOptions(), model="auto").chosen is None
     assert choose_model(photos, "vggt", ReconstructOptions(), model="band").chosen is None
+    assert choose_model(photos, "vggt", ReconstructOptions(), model="auto").scores == ()
 
 
-def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candidate(small_pair):
+def test_when_no_candidate_can_stitch_the_band_the_backend_decides():
+    blank = [Photo(np.zeros((64, 64, 3), np.float32), "a"), Photo(np.zeros((64, 64, 3), np.float32), "b")]
+    choice = choose_model(blank, "classical", ReconstructOptions(), model="auto")
+    assert choice.chosen is None and len(choice.scores) == 2
+    assert all(score.psnr == -math.inf and score.error for score in choice.scores)
+
+
+@pytest.mark.parametrize("model, labels", [
+    ("band", ["homography", "3d/planar", "3d/harmonic", "3d/planes", "3d/planar/prior", "3d/harmonic/prior",
+              "3d/planes/prior"]),
+    ("auto", ["auto/planar", "auto/harmonic", "auto/planes", "homography"]),
+])
+def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candidate(small_pair, model, labels):
     # Two crops of one photo: the target is exactly a shift of the reference's image plane.
-    result = pis3r.stitch(list(small_pair), backend="classical", model="band", depth_fill="auto")
+    result = pis3r.stitch(list(small_pair), backend="classical", model=model, depth_fill="auto")
     choice = result.report["model_choice"]
-    assert [(c["model"], c["depth_fill"]) for c in choice["candidates"]] == [
-        ("homography", None), ("3d", "planar"), ("3d", "harmonic"), ("3d", "planes")]
+    assert [Candidate(c["model"], c["depth_fill"], c["focal_rule"]).label for c in choice["candidates"]] == labels
     scores = [c["band_psnr"] if c["band_psnr"] is not None else -math.inf for c in choice["candidates"]]
     best = choice["candidates"][int(np.argmax(scores))]
-    assert choice["chosen"] == {"model": best["model"], "depth_fill": best["depth_fill"]}
-    assert result.report["model"] == best["model"]
+    assert choice["chosen"] == {key: best[key] for key in ("model", "depth_fill", "focal_rule")}
+    if best["model"] != "auto":
+        assert result.report["model"] == best["model"]
     # A shift of the image plane is a homography: it predicts the band nearly exactly, within
     # 1 dB of the best 3-D candidate (the dominant-plane fill reconstructs that plane too).
-    assert scores[0] >= max(scores[1:]) - 1.0 and scores[0] > 25
+    homography = scores[labels.index("homography")]
+    assert homography >= max(scores) - 1.0 and homography > 25
+
+
+def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypatch):
+    """A shift of the image plane: the backend's own test already picks the homography model,
+    so the forced homography is not reconstructed again and scores the same."""
+    from pis3r.stitch import choose
+
+    rendered = []
+    original = choose._render_band
+    monkeypatch.setattr(choose, "_render_band", lambda candidate, *args: rendered.append(candidate) or
+                        original(candidate, *args))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
+    assert rendered == [Candidate("auto")]
+    assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography")]
+    assert choice.scores[0].psnr == choice.scores[1].psnr and choice.chosen == Candidate("auto")
 
 
 def test_forcing_a_model_skips_the_band_test(small_pair):
     result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
     assert result.report["model_choice"]["candidates"] == []
-    assert result.report["model_choice"]["chosen"] == {"model": "3d", "depth_fill": "harmonic"}
+    assert result.report["model_choice"]["chosen"] == {"model": "3d", "depth_fill": "harmonic", "focal_rule": None}
     default = pis3r.stitch(list(small_pair), backend="classical")
-    assert default.report["model_choice"] == {**default.report["model_choice"], "chosen": None, "candidates": []}
+    assert [c["model"] for c in default.report["model_choice"]["candidates"]] == ["auto", "homography"]
 
 
 def test_a_candidate_that_cannot_stitch_the_band_scores_minus_infinity():
     score = BandScore(Candidate("3d", "planar"), -math.inf, 0.0, "no essential matrix")
-    assert score.to_dict() == {"model": "3d", "depth_fill": "planar", "band_psnr": None, "band_coverage": 0.0,
-                               "error": "no essential matrix"}
+    assert score.to_dict() == {"model": "3d", "depth_fill": "planar", "focal_rule": None, "band_psnr": None,
+                               "band_coverage": 0.0, "error": "no essential matrix"}

@@ -53,6 +53,18 @@ def test_depth_on_textured_pixels(analytic_pair, reconstruction):
         assert (view.depth > 0).mean() > 0.9
 
 
+def test_the_prior_focal_rule_fits_the_pose_at_the_prior(analytic_pair):
+    """``focal_rule="prior"`` (a band candidate): the focal is 1.2 x the longest side, not the
+    self-calibrated one, and the pose is fitted afresh at it (still about right here)."""
+    ref, tgt, ref_img, _, tgt_img, _ = analytic_pair
+    scene = ClassicalReconstructor(ReconstructOptions(focal_rule="prior")).reconstruct(
+        [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")])
+    assert scene.model == "3d" and scene.focal == pytest.approx(1.2 * 480)
+    assert scene.focal_source.startswith("prior (1.2 x longest side, chosen on the held-back band)")
+    rotation_error = np.degrees(np.linalg.norm(Rotation.from_matrix(scene.views[1].camera.R @ tgt.R.T).as_rotvec()))
+    assert rotation_error < 5.0
+
+
 def test_given_focal_is_used(analytic_pair):
     _, _, ref_img, _, tgt_img, _ = analytic_pair
     scene = ClassicalReconstructor(ReconstructOptions(focal=400.0)).reconstruct(

@@ -12,6 +12,11 @@ DEFAULT_CONF_THRESHOLD = 0.0
 # ``auto``: the backend's own degeneracy test; ``homography`` (rotation or one plane) or
 # ``3d`` force a model where the backend has a choice (the classical one).
 RECONSTRUCT_MODELS = ("auto", "homography", "3d")
+# An unknown focal of a pair with a baseline: ``calibrated`` from the matches (essential
+# matrix + refinement), or held at the ``prior`` (1.2 x the longest side). Two views with
+# little parallax leave the focal weakly determined, and a wrong self-calibration bends the
+# extension; which rule predicts the picture better is for the held-back band to say.
+FOCAL_RULES = ("calibrated", "prior")
 
 
 @dataclass(frozen=True)
@@ -23,7 +28,7 @@ class ReconstructOptions:
     ``weights``: a weight file for learned backends; ``conf_threshold``: drop points
     whose confidence is below it; ``depth_fill``: how the classical backend fills depth
     where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`);
-    ``model``: one of :data:`RECONSTRUCT_MODELS`.
+    ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`.
     """
 
     focal: float | None = None
@@ -32,3 +37,4 @@ class ReconstructOptions:
     conf_threshold: float = DEFAULT_CONF_THRESHOLD
     depth_fill: str = DEFAULT_DEPTH_FILL
     model: str = "auto"
+    focal_rule: str = "calibrated"

@@ -20,7 +20,7 @@ it, the focal and the relative pose exported for it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -133,12 +133,14 @@ class PairGeometry:
 
 def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref: float | None,
                   focal_other: float | None, known_source: str = "", focal_is_final: bool = False,
-                  model: str = "auto") -> PairGeometry:
+                  model: str = "auto", focal_rule: str = "calibrated") -> PairGeometry:
     """The geometry of ``ref`` and ``other`` from their consistent matches; ``focal_ref``,
     ``focal_other``: known focals (flag, EXIF, an earlier pair) or ``None``, ``known_source``
     says where the reference's came from. A known focal is checked against a rotation's
     unless ``focal_is_final`` (the user's, or one the other views already use). ``model``:
-    ``auto`` (the degeneracy test below), or ``homography`` / ``3d`` forced."""
+    ``auto`` (the degeneracy test below), or ``homography`` / ``3d`` forced. ``focal_rule``:
+    an unknown focal of a pair with a baseline is ``calibrated`` from the matches or held at
+    the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`)."""
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
@@ -176,6 +178,11 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
         return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, warnings, details)
     # Matches on one plane (within noise, or all but a few) leave the focal free.
     plane_only = planar and (parallax.parallax_class == "rotation" or (~h_inl).sum() < MIN_MATCHES)
+    if focal_rule == "prior" and hypotheses[0].focal_a is None:
+        # The prior as if it were known: a fresh essential fit at it (refined from the
+        # self-calibrated pose, the fit stays in that pose's basin).
+        hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
+        known_source = "prior (1.2 x longest side, chosen on the held-back band)"
     pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only)
     if pose is None:
         hypothesis = hypotheses[0]

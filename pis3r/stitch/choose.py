@@ -35,36 +35,42 @@ from pis3r.stitch.render import render_to_canvas
 BAND_FRACTION = 0.15
 # The band test runs with every photo's longest side at most this (pixels).
 BAND_WORK_SIDE = 480
-# ``auto``: the backend's own degeneracy test (one homography explains the matches, or
-# not); ``band``: the held-back band chooses among every candidate; the others force one.
-# ``auto`` stays the default until the band test wins on every parallax class of the crop
-# protocol (today it gains on rotation pairs and loses on slight ones: see the README).
+# ``auto``: the band chooses between the backend's own explanation (its degeneracy test:
+# rotation, plane or 3-D, focal self-calibrated) and one homography: a 3-D model must
+# predict the held-back band better than the plain warp to be used. ``band``: among every
+# candidate (one homography; the 3-D model with each depth fill, its focal self-calibrated
+# or held at the prior). The others force one. The wider set is opt-in: whether the band
+# tells a self-calibrated focal from the prior is close to a coin toss where they differ
+# little on the band, and a wrong pick costs dB (see the README).
 MODEL_CHOICES = ("auto", "band", "homography", "3d")
 DEFAULT_MODEL = "auto"
-# ``auto``: the band test chooses the 3-D model's depth fill when one runs (``--model band``
-# or ``3d``), else the default fill.
+# ``auto``: the band test chooses the 3-D model's depth fill too.
 DEPTH_FILL_CHOICES = (*DEPTH_FILLS, "auto")
 DEFAULT_DEPTH_FILL_CHOICE = DEFAULT_DEPTH_FILL
 
 
 @dataclass(frozen=True)
 class Candidate:
-    """One explanation of the photos: ``model`` (``homography`` or ``3d``) and, for ``3d``,
-    its ``depth_fill`` (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`)."""
+    """One explanation of the photos: ``model`` (``homography``, ``3d``, or ``auto``: the
+    backend's test), for ``3d`` its ``depth_fill`` (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`),
+    and how an unknown focal is found (``focal_rule``, :data:`pis3r.reconstruct.options.FOCAL_RULES`;
+    ``None``: the backend's default)."""
 
     model: str
     depth_fill: str | None = None
+    focal_rule: str | None = None
 
     @property
     def label(self) -> str:
-        """``homography`` or ``3d/<depth fill>``."""
-        return f"{self.model}/{self.depth_fill}" if self.depth_fill else self.model
+        """``homography``, ``3d/<depth fill>``, with ``/<focal rule>`` when one is set."""
+        return "/".join(part for part in (self.model, self.depth_fill, self.focal_rule) if part)
 
     def backend_options(self, base: ReconstructOptions) -> ReconstructOptions:
-        return replace(base, model=self.model, depth_fill=self.depth_fill or base.depth_fill)
+        return replace(base, model=self.model, depth_fill=self.depth_fill or base.depth_fill,
+                       focal_rule=self.focal_rule or base.focal_rule)
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "depth_fill": self.depth_fill}
+        return {"model": self.model, "depth_fill": self.depth_fill, "focal_rule": self.focal_rule}
 
 
 @dataclass(frozen=True)
@@ -102,14 +108,17 @@ class ModelChoice:
 
 
 def candidates(model: str, depth_fill: str) -> list[Candidate]:
-    """The candidates allowed by the ``--model`` and ``--depth-fill`` choices (none for
-    ``auto``: the backend decides)."""
-    if model == "auto":
-        return []
+    """The candidates allowed by the ``--model`` and ``--depth-fill`` choices (a single one:
+    forced, no band test). The backend's own explanation comes first: it wins a tie."""
     fills = DEPTH_FILLS if depth_fill == "auto" else (depth_fill,)
+    named = depth_fill == "auto"  # a fixed fill is the backend options' already
+    if model == "auto":
+        return [*(Candidate("auto", fill if named else None) for fill in fills), Candidate("homography")]
     found = [Candidate("homography")] if model in ("band", "homography") else []
     if model in ("band", "3d"):
         found += [Candidate("3d", fill) for fill in fills]
+    if model == "band":
+        found += [Candidate("3d", fill, "prior") for fill in fills]
     return found
 
 
@@ -117,19 +126,25 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
                  depth_fill: str = DEFAULT_DEPTH_FILL_CHOICE) -> ModelChoice:
     """Score every allowed candidate on the held-back band of ``photos[0]`` (the reference)
     and return the best. Only the classical backend has a choice (learned backends predict
-    one 3-D scene); with one candidate no band test runs. If no candidate can stitch the band, ``chosen`` is None: the backend decides."""
+    one 3-D scene); with one candidate no band test runs. If no candidate can stitch the
+    band, ``chosen`` is None: the backend decides."""
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
     small = [_working_size(photo) for photo in photos]
     inner, margin, band = _hold_back_band(small[0])
     band_photos, memo = [inner, *small[1:]], {}
-    renders = [_render_band(candidate, band_photos, band.shape, margin, base, memo) for candidate in allowed]
-    reached = band & np.any([covered for _, covered, _ in renders], axis=0)
+    renders = []
+    for candidate in allowed:
+        # A scene of the homography model renders the pair's homography whichever candidate
+        # asked for it: the backend's own choice, when it is that, stands for the forced one.
+        same = [render for render in renders if candidate.model == "homography" and render[3] == "homography"]
+        renders.append(same[0] if same else _render_band(candidate, band_photos, band.shape, margin, base, memo))
+    reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
         BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
-        for candidate, (predicted, covered, error) in zip(allowed, renders)
+        for candidate, (predicted, covered, error, _) in zip(allowed, renders)
     )
     best = max(scores, key=lambda score: score.psnr)
     return ModelChoice(best.candidate if math.isfinite(best.psnr) else None, scores)
@@ -152,15 +167,16 @@ def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
 
 
 def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, int], margin: tuple[int, int],
-                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str]:
+                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str, str]:
     """What ``candidate`` predicts on the reference's grid ``shape`` from ``photos`` (the inner
     part first, at ``margin`` in the reference): ``(h, w, 3)`` colours, ``(h, w)`` bool covered,
-    and an error line when it cannot stitch them. ``memo`` is shared by the candidates."""
+    an error line when it cannot stitch them, and the scene's model (``""`` then). ``memo``
+    is shared by the candidates."""
     height, width = shape
     try:
         scene = ClassicalReconstructor(candidate.backend_options(base), memo).reconstruct(photos)
     except Pis3rError as exc:
-        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc)
+        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc), ""
     inner = photos[0]
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
@@ -168,7 +184,7 @@ def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, in
     filled = fill_holes(canvas.image, canvas.occupied)
     x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
     predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)
-    return predicted, covered, ""
+    return predicted, covered, "", scene.model
 
 
 def _window(image: np.ndarray, known: np.ndarray, x0: int, y0: int, width: int, height: int):
