@@ -136,12 +136,18 @@ def sampson_distance(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, eps: f
     with homogeneous pixels ``x``. Returns ``(N,)`` float64, NaN where the denominator is 0
     (both epipolar lines degenerate: the points are the epipoles, or ``F = 0``); an ``eps``
     above 0 keeps it finite everywhere, as a least-squares residual must be."""
-    F = np.asarray(F, np.float64)
     x_a = np.hstack([np.asarray(pts_a, np.float64), np.ones((len(pts_a), 1))])
     x_b = np.hstack([np.asarray(pts_b, np.float64), np.ones((len(pts_b), 1))])
+    return sampson_homogeneous(F, x_a, x_b, eps)
+
+
+def sampson_homogeneous(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
+    """:func:`sampson_distance` of homogeneous pixels ``x_a``, ``x_b`` ``(N, 3)`` float64
+    (last coordinate 1), for callers that evaluate many ``F`` on the same points."""
+    F = np.asarray(F, np.float64)
     lines_b = x_a @ F.T  # F x_a: epipolar lines in image b
     lines_a = x_b @ F  # F^T x_b: epipolar lines in image a
-    algebraic = np.sum(x_b * lines_b, axis=1)
+    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
     norm = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2) + eps
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(norm > 0, algebraic / norm, np.nan)
