@@ -97,6 +97,19 @@ def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypat
     assert choice.scores[0].psnr == choice.scores[1].psnr and choice.chosen == Candidate("auto")
 
 
+def test_the_band_test_reads_the_reference_and_the_next_photo_only(small_pair, monkeypatch):
+    """The model is chosen once per stitch: its cost must not grow with the number of photos."""
+    from pis3r.reconstruct.classical import ClassicalReconstructor
+
+    seen = []
+    original = ClassicalReconstructor.reconstruct
+    monkeypatch.setattr(ClassicalReconstructor, "reconstruct",
+                        lambda self, photos: seen.append(len(photos)) or original(self, photos))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair * 2, "abcd")]
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
+    assert len(choice.scores) == 2 and set(seen) == {2}
+
+
 def test_forcing_a_model_skips_the_band_test(small_pair):
     result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
     assert result.report["model_choice"]["candidates"] == []

@@ -33,8 +33,10 @@ from pis3r.stitch.render import render_to_canvas
 
 # Share of the reference's width and height held back on each side.
 BAND_FRACTION = 0.15
-# The band test runs with every photo's longest side at most this (pixels).
+# The band test runs with every photo's longest side at most this (pixels), on the first
+# BAND_VIEWS photos (the reference and the next).
 BAND_WORK_SIDE = 480
+BAND_VIEWS = 2
 # ``auto``: the band chooses between the backend's own explanation (its degeneracy test:
 # rotation, plane or 3-D, focal self-calibrated) and one homography: a 3-D model must
 # predict the held-back band better than the plain warp to be used. ``band``: among every
@@ -131,7 +133,9 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
-    small = [_working_size(photo) for photo in photos]
+    # The model is chosen once per stitch: on the reference and the next photo, so the test
+    # costs the same for two photos or eleven.
+    small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
     inner, margin, band = _hold_back_band(small[0])
     band_photos, memo = [inner, *small[1:]], {}
     renders = []
