@@ -53,6 +53,20 @@ def test_depth_on_textured_pixels(analytic_pair, reconstruction):
         assert (view.depth > 0).mean() > 0.9
 
 
+def test_an_unfilled_reference_keeps_only_what_the_pair_measured(analytic_pair, reconstruction):
+    """The band test renders only the other views: the reference's depth fill is skipped there,
+    and nothing else changes."""
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    scene = ClassicalReconstructor(ReconstructOptions(fill_reference=False)).reconstruct(
+        [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")])
+    filled, unfilled = reconstruction.views[0], scene.views[0]
+    assert (unfilled.depth > 0).mean() < (filled.depth > 0).mean() and (unfilled.depth > 0).mean() > 0.03
+    both = (unfilled.depth > 0) & (filled.depth > 0)
+    assert np.median(np.abs(unfilled.depth[both] / filled.depth[both] - 1)) < 0.01
+    np.testing.assert_array_equal(scene.views[1].depth, reconstruction.views[1].depth)
+    np.testing.assert_array_equal(unfilled.camera.K, filled.camera.K)
+
+
 def test_the_prior_focal_rule_fits_the_pose_at_the_prior(analytic_pair):
     """``focal_rule="prior"`` (a band candidate): the focal is 1.2 x the longest side, not the
     self-calibrated one, and the pose is fitted afresh at it (still about right here)."""

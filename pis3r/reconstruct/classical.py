@@ -186,7 +186,12 @@ class ClassicalReconstructor:
             view_ref, view_other = self._views_homography(ref, other, pair)
             measured_ref = view_ref.depth
         else:
-            view_ref, view_other, measured_ref = self._views_3d(ref, other, pair, fill_ref=ref_depth is None)
+            view_ref, view_other, measured_ref = self._views_3d(
+                ref, other, pair, fill_ref=ref_depth is None and self.options.fill_reference)
+            if view_ref is None and ref_depth is None:
+                # The reference unfilled: the depth the pair measured on it.
+                camera = Camera.identity(pair.K_a, ref.width, ref.height)
+                view_ref = View(ref.pixels, camera, measured_ref, (measured_ref > 0).astype(np.float32), ref.name)
         if ref_depth is None:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both

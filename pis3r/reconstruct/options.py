@@ -24,11 +24,14 @@ class ReconstructOptions:
     """Settings every backend receives; each uses the ones that concern it.
 
     ``focal``: focal length in pixels of the input photos (overrides EXIF and
-    self-calibration); ``device``: ``"cpu"`` or ``"cuda"`` (resolved, never ``"auto"``);
+    self-calibration); ``device``: ``"auto"``, ``"cpu"`` or ``"cuda"`` (resolved by the backends
+    that use one: the classical backend does not);
     ``weights``: a weight file for learned backends; ``conf_threshold``: drop points
     whose confidence is below it; ``depth_fill``: how the classical backend fills depth
     where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`);
-    ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`.
+    ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`;
+    ``fill_reference``: whether the reference view's depth is filled where the other views do
+    not see it (the held-back band test renders only the other views: there it is not).
     """
 
     focal: float | None = None
@@ -38,3 +41,4 @@ class ReconstructOptions:
     depth_fill: str = DEFAULT_DEPTH_FILL
     model: str = "auto"
     focal_rule: str = "calibrated"
+    fill_reference: bool = True

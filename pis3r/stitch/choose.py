@@ -178,7 +178,9 @@ def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, in
     is shared by the candidates."""
     height, width = shape
     try:
-        scene = ClassicalReconstructor(candidate.backend_options(base), memo).reconstruct(photos)
+        # The band is rendered from the other views: the reference's depth is not filled.
+        options = replace(candidate.backend_options(base), fill_reference=False)
+        scene = ClassicalReconstructor(options, memo).reconstruct(photos)
     except Pis3rError as exc:
         return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc), ""
     inner = photos[0]
