@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-STAGES = ("read images", "reconstruct", "parallax", "render", "fill holes", "blend")
+STAGES = ("read images", "choose model", "reconstruct", "parallax", "render", "fill holes", "blend")
 
 _CHILD = r"""
 import json, resource, sys, time
