@@ -44,15 +44,14 @@ class View:
         return replace(self, camera=Camera(cam.K, cam.R, cam.t * factor, cam.width, cam.height),
                        depth=self.depth * factor)
 
-    def in_world_of(self, anchor: Camera, factor: float) -> "View":
+    def in_world_of(self, anchor: Camera) -> "View":
         """This view, registered in the camera frame of ``anchor`` (the other view of its pair,
-        at the origin there) at ``1 / factor`` of the world's scale, expressed in the world
-        where ``anchor`` is: with ``x = R X_a + t`` and ``X_a = R_a X + t_a``, the camera
-        becomes ``(R R_a, R t_a + factor t)`` and the depth is times ``factor``. A view that
-        overlaps only another non-reference view reaches the reference's world this way."""
-        scaled = self.rescaled(factor)
-        cam = scaled.camera
-        return replace(scaled, camera=Camera(cam.K, cam.R @ anchor.R, cam.R @ anchor.t + cam.t, cam.width, cam.height))
+        at the origin there, already at the world's scale: :meth:`rescaled`), expressed in
+        the world where ``anchor`` is: with ``x = R X_a + t`` and ``X_a = R_a X + t_a``, the
+        camera becomes ``(R R_a, R t_a + t)``. A view that overlaps only another
+        non-reference view reaches the reference's world this way."""
+        cam = self.camera
+        return replace(self, camera=Camera(cam.K, cam.R @ anchor.R, cam.R @ anchor.t + cam.t, cam.width, cam.height))
 
 
 @dataclass(frozen=True)

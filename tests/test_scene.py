@@ -54,7 +54,7 @@ def test_a_view_registered_to_another_view_lands_in_the_world_of_that_view():
     R_ca = cv2.Rodrigues(np.array([0.0, 0.3, 0.0]))[0]
     pair_view = dataclasses.replace(_view("c", t=(-0.5, 0.0, 0.1)),
                                     camera=Camera(anchor.K, R_ca, np.array([-0.5, 0.0, 0.1]), 8, 6))
-    world = pair_view.in_world_of(anchor, 2.0)
+    world = pair_view.rescaled(2.0).in_world_of(anchor)
     # A world point seen by c: its coordinates in a's frame (at the pair's scale) map to c's
     # pixel the same way before and after.
     X = np.array([0.4, 0.2, 5.0])
@@ -64,5 +64,5 @@ def test_a_view_registered_to_another_view_lands_in_the_world_of_that_view():
     assert np.allclose(seen_in_world, 2.0 * seen_from_pair)
     assert np.allclose(world.depth, 2.0 * pair_view.depth)
     # Anchored at the identity, it is a rescaling.
-    same = pair_view.in_world_of(Camera.identity(anchor.K, 8, 6), 3.0)
+    same = pair_view.rescaled(3.0).in_world_of(Camera.identity(anchor.K, 8, 6))
     assert np.allclose(same.camera.t, pair_view.rescaled(3.0).camera.t) and np.allclose(same.camera.R, R_ca)

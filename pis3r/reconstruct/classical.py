@@ -137,12 +137,16 @@ class ClassicalReconstructor:
         (:meth:`pis3r.scene.View.in_world_of`). Repeated while photos attach, so a chain of any
         length reaches the reference. ``registered`` and ``failures`` are updated in place;
         returns the warnings of the pairs that attached."""
-        warnings, attached = [], True
+        warnings, attached, shared = [], True, {}
         while failures and attached:
             attached = False
             for j in sorted(failures):
-                shared = {i: len(match(features[i].sift, features[j].sift)) for i in registered if i != 0}
-                for i in sorted(shared, key=lambda i: -shared[i])[:CHAIN_ANCHORS]:
+                # Match counts are kept across rounds: a round only adds newly registered photos.
+                for i in registered:
+                    if i != 0 and (i, j) not in shared:
+                        shared[i, j] = len(match(features[i].sift, features[j].sift))
+                anchors = sorted((i for i in registered if i != 0), key=lambda i: -shared[i, j])
+                for i in anchors[:CHAIN_ANCHORS]:
                     anchor = registered[i]
                     try:
                         pair = self.pair_geometry(features[i], features[j], float(anchor.camera.K[0, 0]),
@@ -150,7 +154,7 @@ class ClassicalReconstructor:
                         _, view_j = self._views(photos[i], photos[j], pair, anchor.depth)
                     except Pis3rError:
                         continue
-                    registered[j] = view_j.in_world_of(anchor.camera, 1.0)
+                    registered[j] = view_j.in_world_of(anchor.camera)
                     warnings += pair.warnings
                     del failures[j]
                     attached = True
@@ -188,10 +192,6 @@ class ClassicalReconstructor:
         else:
             view_ref, view_other, measured_ref = self._views_3d(
                 ref, other, pair, fill_ref=ref_depth is None and self.options.fill_reference)
-            if view_ref is None and ref_depth is None:
-                # The reference unfilled: the depth the pair measured on it.
-                camera = Camera.identity(pair.K_a, ref.width, ref.height)
-                view_ref = View(ref.pixels, camera, measured_ref, (measured_ref > 0).astype(np.float32), ref.name)
         if ref_depth is None:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
@@ -237,9 +237,9 @@ class ClassicalReconstructor:
 
     # -- depth: full 3-D model -----------------------------------------------------------
     def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry, fill_ref: bool = True):
-        """``(view_ref, view_other, measured_ref)``: both views with their depth filled (only
-        the other one without ``fill_ref``: ``view_ref`` is then ``None``) and the depth the
-        pair measured on ``ref`` ``(H, W)`` (0 where unmeasured)."""
+        """``(view_ref, view_other, measured_ref)``: both views with their depth filled (without
+        ``fill_ref``, the reference keeps only the depth the pair measured on it) and that
+        measured depth ``(H, W)`` (0 where unmeasured)."""
         K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
         img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
         img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
@@ -264,7 +264,8 @@ class ClassicalReconstructor:
         measured_a = cv2.resize(np.where(meas_a.confidence > 0.05, meas_a.depth, 0.0).astype(np.float32),
                                 (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
         if not fill_ref:
-            return None, self._filled_view(other, img_b, meas_b, camera_b), measured_a
+            unfilled_a = View(ref.pixels, camera_a, measured_a, (measured_a > 0).astype(np.float32), ref.name)
+            return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
         # The two views' depth fills are independent sparse solves (SuperLU releases the
         # GIL): one thread each.
         with ThreadPoolExecutor(2) as pool:

@@ -151,8 +151,7 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
 
     def residuals(p):
         Rm, tv, Ka, Kb = unpack(p)
-        F = _inverse_intrinsics(Kb).T @ _skew(tv) @ Rm @ _inverse_intrinsics(Ka)
-        sampson = sampson_homogeneous(F, x_a, x_b, SAMPSON_EPS)
+        sampson = sampson_homogeneous(_fundamental(Rm, tv, Ka, Kb), x_a, x_b, SAMPSON_EPS)
         return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
     fit = least_squares(residuals, p0, loss="cauchy", f_scale=scale, max_nfev=300)
@@ -168,6 +167,11 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     return PoseFit(Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, epipolar_cost(matches, Rm, tv, Ka, Kb), prior_cost)
 
 
+def _fundamental(R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
+    """``F`` ``(3, 3)`` of the pose ``x_b = R x_a + t`` (unit ``t``) between cameras ``K_a``, ``K_b``."""
+    return _inverse_intrinsics(K_b).T @ _skew(t) @ R @ _inverse_intrinsics(K_a)
+
+
 def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
     """``K^-1`` of an upper-triangular intrinsics matrix in closed form (``np.linalg.inv``'s
     overhead is most of a residual evaluation)."""
@@ -178,7 +182,7 @@ def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
 def epipolar_cost(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> float:
     """The robust Sampson cost (as :func:`refine_pose`'s) of matches under the pose ``R``, ``t``."""
     scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
-    F = np.linalg.inv(K_b).T @ _skew(t / max(np.linalg.norm(t), 1e-12)) @ R @ np.linalg.inv(K_a)
+    F = _fundamental(R, t / max(np.linalg.norm(t), 1e-12), K_a, K_b)
     return _cauchy(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
 
 

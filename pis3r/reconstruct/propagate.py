@@ -149,8 +149,7 @@ def propagate_inverse_depth(
     weight = np.where(seeds, small_conf, 0.0).ravel()
     if method not in DEPTH_FILLS:
         raise ValueError(f"unknown propagation method {method!r}")
-    planes, owners = (dominant_planes(small, seeds, small_conf) if method == "planes"
-                      else (np.zeros((0, 3)), np.zeros((sh, sw), np.int64)))
+    planes, owners = dominant_planes(small, seeds, small_conf) if method == "planes" else (np.zeros((0, 3)), None)
     # One system, several right-hand sides: the harmonic fill, its reach and, for
     # ``planes``, every label's share of the random walk (planes, then off-plane).
     labels = [(owners.ravel() == k) * weight for k in range(len(planes) + 1)] if len(planes) else []
