@@ -115,13 +115,8 @@ def speed() -> None:
     for w, h in ((1224, 816), (3000, 2000)):
         scene = smooth_pair(w, h)
         for backend in ("gl", "numpy"):
-            render_to_canvas(scene, raster_backend=backend)
-            times = []
-            for _ in range(3):
-                start = time.perf_counter()
-                render_to_canvas(scene, raster_backend=backend)
-                times.append(time.perf_counter() - start)
-            print(f"render {w}x{h} pair, {backend}: {1000 * min(times):.0f} ms")
+            seconds = best_seconds(lambda: render_to_canvas(scene, raster_backend=backend), 3)
+            print(f"render {w}x{h} pair, {backend}: {1000 * seconds:.0f} ms")
         canvas = render_to_canvas(scene)
         floor = render_floor(canvas.camera.width, canvas.camera.height, scene.views[1].image)
         print(f"  floor on its {canvas.camera.width}x{canvas.camera.height} canvas: "
@@ -137,16 +132,19 @@ def render_floor(width: int, height: int, image: np.ndarray) -> dict[str, float]
     ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
     steps = {"gl pass": lambda: rasterise([quad], width, height, "gl"),
              "bicubic remap": lambda: cv2.remap(image, xs * 0.9, ys * 0.9, cv2.INTER_CUBIC)}
-    best = {}
-    for name, step in steps.items():
+    return {name: best_seconds(step, 5) for name, step in steps.items()}
+
+
+def best_seconds(step, repeat: int) -> float:
+    """The fastest of ``repeat`` timed calls of ``step`` (after one untimed call that warms
+    caches and compiles shaders)."""
+    step()
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
         step()
-        times = []
-        for _ in range(5):
-            start = time.perf_counter()
-            step()
-            times.append(time.perf_counter() - start)
-        best[name] = min(times)
-    return best
+        times.append(time.perf_counter() - start)
+    return min(times)
 
 
 def main() -> None:

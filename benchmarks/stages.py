@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+# The render timing's scene and timer (two 1 MP views of a wall with a box in front).
+RENDER_BENCHMARK = Path(__file__).resolve().with_name("render.py")
 STAGES = ("read images", "choose model", "reconstruct", "parallax", "render", "fill holes", "blend")
 
 _CHILD = r"""
@@ -45,30 +47,14 @@ print(json.dumps({"seconds": result.report["seconds"], "total": total, "peak_gb"
 """
 
 _RENDER = r"""
-import sys, time
-import numpy as np
-from pis3r.camera import Camera, intrinsics
-from pis3r.scene import Scene, View
+import importlib.util, sys
 from pis3r.stitch.render import render_to_canvas
-backend = sys.argv[1]
-w, h = 1224, 816
-K = intrinsics(1000, w, h)
-rng = np.random.default_rng(0)
-v, u = np.mgrid[0:h, 0:w].astype(np.float32)
-# A slanted wall with a bump and a box in front of it: smooth surfaces and depth jumps
-# (random per-pixel depth would be cut everywhere and leave nothing to draw).
-depth = 6.0 + 2.0 * u / w + 0.5 * np.sin(v / h * 6.0)
-depth = np.where((abs(u - w / 2) < w / 10) & (abs(v - h / 2) < h * 0.15), 3.0, depth).astype(np.float32)
-views = [View(rng.uniform(0, 1, (h, w, 3)).astype(np.float32), Camera(K, np.eye(3), [-shift, 0, 0], w, h), depth,
-              np.ones((h, w), np.float32)) for shift in (0.0, 0.6)]
-scene = Scene(views)
-render_to_canvas(scene, raster_backend=backend)
-times = []
-for _ in range(5):
-    start = time.perf_counter()
-    render_to_canvas(scene, raster_backend=backend)
-    times.append(time.perf_counter() - start)
-print(min(times) * 1000)
+backend, bench_path = sys.argv[1], sys.argv[2]
+spec = importlib.util.spec_from_file_location("render_benchmark", bench_path)
+bench = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(bench)
+scene = bench.smooth_pair(1224, 816)
+print(1000 * bench.best_seconds(lambda: render_to_canvas(scene, raster_backend=backend), 5))
 """
 
 
@@ -107,7 +93,7 @@ def main() -> None:
             print(f"mean total seconds ({label}): {sum(values) / len(values):.2f} over {len(values)} pairs")
     for backend in ("gl", "numpy"):
         try:
-            ms = f"{float(run_child(_RENDER, backend)):.1f} ms"
+            ms = f"{float(run_child(_RENDER, backend, str(RENDER_BENCHMARK))):.1f} ms"
         except RuntimeError as exc:
             ms = f"failed: {exc}"
         print(f"render of two 1 MP views ({backend} rasteriser): {ms}")
