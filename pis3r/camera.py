@@ -153,6 +153,28 @@ def sampson_homogeneous(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: fl
         return np.where(norm > 0, algebraic / norm, np.nan)
 
 
+def sampson_jacobian(F: np.ndarray, dF: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
+    """``(N, P)``: the derivatives of :func:`sampson_homogeneous` of ``F`` ``(3, 3)`` at the
+    homogeneous pixels ``x_a``, ``x_b`` ``(N, 3)`` along each of the ``P`` directions
+    ``dF`` ``(P, 3, 3)`` (``dF[k] = dF / dp_k``): the chain rule, so a solver's Jacobian
+    costs one pass over the points instead of one residual evaluation per parameter.
+    Zero where the Sampson distance is undefined (both epipolar lines degenerate)."""
+    F = np.asarray(F, np.float64)
+    lines_b, lines_a = x_a @ F.T, x_b @ F
+    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
+    root = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2)
+    norm = root + eps
+    # (P, 3, N): dF_k x_a and dF_k^T x_b for every point (matmul: einsum is slower here).
+    d_lines_b = dF @ x_a.T
+    d_lines_a = dF.transpose(0, 2, 1) @ x_b.T
+    d_algebraic = (d_lines_b * x_b.T).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_root = (lines_b[:, 0] * d_lines_b[:, 0] + lines_b[:, 1] * d_lines_b[:, 1]
+                  + lines_a[:, 0] * d_lines_a[:, 0] + lines_a[:, 1] * d_lines_a[:, 1]) / root
+        d = (d_algebraic * norm - algebraic * d_root) / (norm * norm)
+    return np.where(np.isfinite(d), d, 0.0).T
+
+
 @dataclass(frozen=True)
 class Transfer:
     """Where the pixels of a source depth map land in a destination camera:

@@ -119,3 +119,40 @@ def test_asift_matches_a_view_too_oblique_for_sift():
     R_gt, t_gt = relative_pose(Camera.identity(K, 480, 360), oblique)
     assert angle_deg(pair.R @ R_gt.T) < 1.0
     assert np.degrees(np.arccos(pair.t @ t_gt / np.linalg.norm(pair.t) / np.linalg.norm(t_gt))) < 2.0
+
+
+def test_pose_refinement_jacobian_matches_finite_differences():
+    from pis3r.reconstruct.geometry import _fundamental, _fundamental_derivatives, _pose_parameters
+
+    K_a, K_b = intrinsics(800.0, 640, 480), intrinsics(960.0, 768, 576)
+    R0 = rotation_from_angles(4.0, -2.0, 1.0)
+    for refine_focal in (False, True):
+        p = np.array([0.01, 0.02, -0.03, 0.7, 0.4] + ([0.1] if refine_focal else []))
+        F, dF = _fundamental_derivatives(p, R0, K_a, K_b, refine_focal)
+
+        def at(q):
+            return _fundamental(*_pose_parameters(q, R0, K_a, K_b, refine_focal))
+
+        np.testing.assert_allclose(F, at(p), rtol=1e-12, atol=1e-15)
+        numeric = np.stack([(at(p + h) - at(p - h)) / 2e-7 for h in np.eye(len(p)) * 1e-7])
+        np.testing.assert_allclose(dF, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+
+
+def test_models_of_one_pair_share_its_essential_fits(monkeypatch):
+    """The band test estimates one pair under several models: the costly essential-matrix
+    fits run once for all of them, and the pose is the one each computes alone."""
+    import pis3r.reconstruct.pairs as pairs
+
+    a, b, _, _ = facade_pair([-1.5, 0.2, 1.5], -12.0)
+    calls = []
+    best_essential = pairs._best_essential
+    monkeypatch.setattr(pairs, "_best_essential", lambda *args: calls.append(1) or best_essential(*args))
+    alone = ClassicalReconstructor(ReconstructOptions(model="3d")).cameras(a, b)
+    assert len(calls) == 1
+    memo = {}
+    shared = [ClassicalReconstructor(ReconstructOptions(model=model), memo).cameras(a, b)
+              for model in ("3d", "homography", "3d")]
+    assert len(calls) == 2
+    np.testing.assert_allclose(shared[0].R, alone.R, atol=1e-9)
+    np.testing.assert_allclose(shared[2].R, alone.R, atol=1e-9)
+    assert shared[1].model == "homography"

@@ -181,7 +181,7 @@ class ClassicalReconstructor:
             )
         self._reject_identical(found.matches, ref.photo, other.photo)
         return estimate_pair(ref.photo, other.photo, found, focal_ref, self._known_focal(other.photo)[0], source,
-                             focal_is_final, self.options.model, self.options.focal_rule)
+                             focal_is_final, self.options.model, self.options.focal_rule, self._memoised)
 
     def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth) -> tuple[View | None, View]:
         """The pair's two views. With ``ref_depth`` (``ref``'s depth in the scene already

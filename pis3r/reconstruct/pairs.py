@@ -20,7 +20,10 @@ it, the focal and the relative pose exported for it.
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -133,14 +136,17 @@ class PairGeometry:
 
 def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref: float | None,
                   focal_other: float | None, known_source: str = "", focal_is_final: bool = False,
-                  model: str = "auto", focal_rule: str = "calibrated") -> PairGeometry:
+                  model: str = "auto", focal_rule: str = "calibrated",
+                  remember: Callable[[tuple, Callable], Any] | None = None) -> PairGeometry:
     """The geometry of ``ref`` and ``other`` from their consistent matches; ``focal_ref``,
     ``focal_other``: known focals (flag, EXIF, an earlier pair) or ``None``, ``known_source``
     says where the reference's came from. A known focal is checked against a rotation's
     unless ``focal_is_final`` (the user's, or one the other views already use). ``model``:
     ``auto`` (the degeneracy test below), or ``homography`` / ``3d`` forced. ``focal_rule``:
     an unknown focal of a pair with a baseline is ``calibrated`` from the matches or held at
-    the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`)."""
+    the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`). ``remember(key, compute)``:
+    a memo shared by estimates of the same pair under other models (the held-back band test),
+    so the essential-matrix fits, the costliest part, run once."""
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
@@ -183,7 +189,8 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
         # self-calibrated pose, the fit stays in that pose's basin).
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
-    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only)
+    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only,
+                      remember or (lambda key, compute: compute()))
     if pose is None:
         hypothesis = hypotheses[0]
         K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
@@ -246,34 +253,24 @@ def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
 
 
 def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
-               plane_only: bool = False):
+               plane_only: bool, remember: Callable[[tuple, Callable], Any]):
     """``(PoseFit, focal source, warnings, details)`` of the best essential-matrix pose over
     the focal hypotheses and starting focals (refined jointly), or ``None``. A later
     hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
     noisy matches, a wrong focal relation fits them a little better about as often as not.
     An unknown focal the matches do not determine comes with a warning: it is where the
-    weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``)."""
-    best = None
-    for hypothesis in hypotheses:
-        starts = ([hypothesis.focal_a] if hypothesis.focal_a else
-                  geometry.focal_candidates(inliers, size_a, size_b, hypothesis.prior_a, hypothesis.ratio))
-        prior = None if hypothesis.focal_a else hypothesis.prior_a
-        fits = []
-        for focal in starts:
-            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
-            pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
-            if pose is not None:
-                fits.append(geometry.refine_pose(inliers, pose[0], pose[1], K_a, K_b, prior))
-        fit = min(fits, key=lambda candidate: candidate.objective, default=None)
-        if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
-            best = (fit, hypothesis)
+    weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``).
+    ``remember``: see :func:`estimate_pair` (keyed by the matches' and hypotheses' values)."""
+    key = ("essential", hashlib.sha1(inliers.pts_a.tobytes() + inliers.pts_b.tobytes()).hexdigest(),
+           tuple(hypotheses), size_a, size_b)
+    best = remember(key, lambda: _best_essential(inliers, hypotheses, size_a, size_b))
     if best is None:
         return None
     fit, hypothesis = best
     details = {"focal_relation": hypothesis.name}
     if hypothesis.focal_a:
         return fit, known_source, [], details
-    evidence = 0.0 if plane_only else _focal_evidence(inliers, fit)
+    evidence = 0.0 if plane_only else remember((*key, "evidence"), lambda: _focal_evidence(inliers, fit))
     details["focal_evidence"] = evidence
     if plane_only:
         # A plane tells nothing about the focal: take the prior, not where the fit drifted.
@@ -288,6 +285,25 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
     focal = float(fit.K_a[0, 0])
     warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
     return fit, "self-calibrated (essential matrix + Sampson refinement)", warnings, details
+
+
+def _best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b):
+    """``(PoseFit, FocalHypothesis)``: :func:`_essential`'s best fit, or ``None``."""
+    best = None
+    for hypothesis in hypotheses:
+        starts = ([hypothesis.focal_a] if hypothesis.focal_a else
+                  geometry.focal_candidates(inliers, size_a, size_b, hypothesis.prior_a, hypothesis.ratio))
+        prior = None if hypothesis.focal_a else hypothesis.prior_a
+        fits = []
+        for focal in starts:
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
+            if pose is not None:
+                fits.append(geometry.refine_pose(inliers, pose[0], pose[1], K_a, K_b, prior))
+        fit = min(fits, key=lambda candidate: candidate.objective, default=None)
+        if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
+            best = (fit, hypothesis)
+    return best
 
 
 def _focal_evidence(inliers: Matches, fit: geometry.PoseFit) -> float:

@@ -28,6 +28,7 @@ behind the camera.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import cv2
@@ -153,13 +154,16 @@ def propagate_inverse_depth(
     # One system, several right-hand sides: the harmonic fill, its reach and, for
     # ``planes``, every label's share of the random walk (planes, then off-plane).
     labels = [(owners.ravel() == k) * weight for k in range(len(planes) + 1)] if len(planes) else []
-    solved = screened_solve(L, np.stack([small.ravel(), weight, *labels], -1), weight, smoothness)
+    with ThreadPoolExecutor(1) as worker:
+        # SuperLU releases the GIL: the plane fields' factorisation overlaps this one.
+        first = worker.submit(screened_solve, L, np.stack([small.ravel(), weight, *labels], -1), weight, smoothness)
+        if method in ("planar", "planes"):
+            params, plane_w = _local_planes(small, np.where(seeds, small_conf, 0.0), PLANE_WINDOW)
+            fields = screened_solve(L, params.reshape(-1, 3), plane_w.ravel(), smoothness)
+        solved = first.result()
     dense, reach = solved[:, 0], solved[:, 1]
     v, u = np.mgrid[0:sh, 0:sw].astype(np.float64)
     if method in ("planar", "planes"):
-        params, plane_w = _local_planes(small, np.where(seeds, small_conf, 0.0), PLANE_WINDOW)
-        pw = plane_w.ravel()
-        fields = screened_solve(L, params.reshape(-1, 3), pw, smoothness)
         planar = fields[:, 0] * u.ravel() + fields[:, 1] * v.ravel() + fields[:, 2]
         # Far from their seeds, mixed or noisy planes can run away; stay within a
         # factor PLANE_LEASH of the harmonic solution (in inverse depth).
