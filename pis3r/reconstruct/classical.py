@@ -173,7 +173,7 @@ class ClassicalReconstructor:
                       source: str = "", focal_is_final: bool = False, named: bool = False) -> PairGeometry:
         """Cameras and model of one pair, no depth (:func:`pis3r.reconstruct.pairs.estimate_pair`);
         ``focal_ref`` (from ``source``) is the reference's known focal, if any."""
-        found = consistent_matches(ref, other)
+        found = self._memoised(("matches", id(ref.photo), id(other.photo)), lambda: consistent_matches(ref, other))
         if len(found.matches) < MIN_MATCHES:
             raise NotEnoughOverlapError(
                 f"these images do not overlap enough to stitch: {len(found.matches)} matches"

@@ -146,7 +146,8 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     an unknown focal of a pair with a baseline is ``calibrated`` from the matches or held at
     the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`). ``remember(key, compute)``:
     a memo shared by estimates of the same pair under other models (the held-back band test),
-    so the essential-matrix fits, the costliest part, run once."""
+    so the homography and essential-matrix fits run once: every random draw of an estimate is
+    then its first caller's, as it would have been in each caller (each starts from one seed)."""
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
@@ -154,7 +155,10 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
             f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches")
     parallax = parallax_from_matches(matches, float(np.hypot(*size_a)))
     inliers = matches.subset(f_inl)
-    H, h_inl = geometry.homography(inliers, *size_a)
+    remember = remember or (lambda key, compute: compute())
+    # Keyed by value: the same matches give the same fits, whichever model asks.
+    matches_key = hashlib.sha1(inliers.pts_a.tobytes() + inliers.pts_b.tobytes()).hexdigest()
+    H, h_inl = remember(("homography", matches_key), lambda: geometry.homography(inliers, *size_a))
     if H is None:
         raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
     hypotheses = focal_hypotheses(size_a, size_b, focal_ref, focal_other)
@@ -189,8 +193,7 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
         # self-calibrated pose, the fit stays in that pose's basin).
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
-    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only,
-                      remember or (lambda key, compute: compute()))
+    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key)
     if pose is None:
         hypothesis = hypotheses[0]
         K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
@@ -253,16 +256,15 @@ def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
 
 
 def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
-               plane_only: bool, remember: Callable[[tuple, Callable], Any]):
+               plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str):
     """``(PoseFit, focal source, warnings, details)`` of the best essential-matrix pose over
     the focal hypotheses and starting focals (refined jointly), or ``None``. A later
     hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
     noisy matches, a wrong focal relation fits them a little better about as often as not.
     An unknown focal the matches do not determine comes with a warning: it is where the
     weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``).
-    ``remember``: see :func:`estimate_pair` (keyed by the matches' and hypotheses' values)."""
-    key = ("essential", hashlib.sha1(inliers.pts_a.tobytes() + inliers.pts_b.tobytes()).hexdigest(),
-           tuple(hypotheses), size_a, size_b)
+    ``remember``: see :func:`estimate_pair`, with ``matches_key`` naming the matches' values."""
+    key = ("essential", matches_key, tuple(hypotheses), size_a, size_b)
     best = remember(key, lambda: _best_essential(inliers, hypotheses, size_a, size_b))
     if best is None:
         return None
