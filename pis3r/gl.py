@@ -26,7 +26,12 @@ def shared_context():
             try:
                 import moderngl
 
-                _state["context"], _state["error"] = moderngl.create_standalone_context(backend="egl"), ""
+                context = moderngl.create_standalone_context(backend="egl")
+                # A new context is current in the thread that made it, and an EGL context can be
+                # current in one thread only: release it here, so that any thread (the web
+                # server's workers, a warm-up thread) can make it current for a draw.
+                context.__exit__(None, None, None)
+                _state["context"], _state["error"] = context, ""
             except Exception as exc:  # moderngl raises bare Exceptions for a missing EGL or driver
                 _state["context"], _state["error"] = None, str(exc).strip() or exc.__class__.__name__
     return _state["context"]

@@ -1,6 +1,9 @@
 import concurrent.futures
 import functools
 import gc
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -243,6 +246,26 @@ def test_gl_renders_from_other_threads_and_keeps_working_after_they_end():
         np.testing.assert_array_equal(here.source, there.source)
     again = render_to_canvas(scene, raster_backend="gl")
     np.testing.assert_array_equal(here.source, again.source)
+
+
+def test_gl_context_made_by_a_thread_that_ended_still_renders():
+    """The web server's worker threads end when idle: the one that happened to create the
+    shared context must not take it with it. Run in a fresh process, where no context exists."""
+    if not raster.gl_available():
+        pytest.skip("no EGL context on this machine")
+    script = (
+        "import threading\n"
+        "from pis3r.gl import shared_context\n"
+        "from pis3r.stitch.render import render_to_canvas\n"
+        "from tests.test_render import _planes\n"
+        "maker = threading.Thread(target=shared_context); maker.start(); maker.join()\n"
+        "canvas = render_to_canvas(_planes()[1], raster_backend='gl')\n"
+        "print(int(canvas.occupied.sum()))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) > 0
 
 
 def test_numpy_and_gl_rasterisers_agree():
