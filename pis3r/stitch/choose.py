@@ -150,8 +150,21 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
         BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
         for candidate, (predicted, covered, error, _) in zip(allowed, renders)
     )
-    best = max(scores, key=lambda score: score.psnr)
-    return ModelChoice(best.candidate if math.isfinite(best.psnr) else None, scores)
+    best = max(range(len(scores)), key=lambda k: scores[k].psnr)
+    if not math.isfinite(scores[best].psnr):
+        return ModelChoice(None, scores)
+    return ModelChoice(_as_tested(scores[best].candidate, renders[best][3]), scores)
+
+
+def _as_tested(candidate: Candidate, scene_model: str) -> Candidate:
+    """The model the band test saw ``candidate`` make (``scene_model``): the backend's own
+    test (``auto``) may decide otherwise on the whole photos than on the band's copies, and
+    what makes the stitch must be what predicted the band."""
+    if candidate.model != "auto":
+        return candidate
+    if scene_model == "homography":
+        return Candidate("homography")
+    return Candidate("3d", candidate.depth_fill, candidate.focal_rule)
 
 
 def _working_size(photo: Photo) -> Photo:
