@@ -183,9 +183,39 @@ FLANN_CHECKS = 32
 def _exact_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, k: int):
     """The ``k`` nearest neighbours both ways, ``((dist (N, k), idx (N, k)), (dist (M, k),
     idx (M, k)))`` with distances sorted, from all distances between unit-norm descriptors.
-    The other way round from its own product: reading down the columns of the first is
-    several times slower than a second product (non-contiguous reads)."""
-    return _nearest(desc_a @ desc_b.T, k), _nearest(desc_b @ desc_a.T, k)
+    For ``k = 2`` the way back comes from the same product (:func:`_back_of_nearest`: only
+    the rows :func:`match` reads); otherwise from its own product, since a partial sort down
+    the columns of the first is several times slower (non-contiguous reads)."""
+    similarity = desc_a @ desc_b.T
+    forward = _nearest(similarity, k)
+    if k != 2:
+        return forward, _nearest(desc_b @ desc_a.T, k)
+    return forward, _back_of_nearest(similarity, forward[1][:, 0])
+
+
+def _back_of_nearest(similarity: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The way back for ``k = 2`` without a second product: ``(dist (M, 2), idx (M, 2))`` for
+    the columns of ``similarity`` ``(N, M)`` that are some row's ``nearest`` ``(N,)`` and
+    whose nearest row is such a row (the only ones :func:`match` can keep: mutual pairs);
+    index -1 and distance inf elsewhere, and no second index. ``max`` down the columns is
+    fast where ``argmax`` is not: a column's nearest is the first row whose nearest it is
+    and that reaches the column's maximum (exact ties between different descriptors aside),
+    its second best the maximum once that entry is removed."""
+    rows = np.arange(similarity.shape[0])
+    best = similarity[rows, nearest]
+    reaches = best >= similarity.max(axis=0)[nearest]
+    # The first such row of each column, as argmax would pick it.
+    columns, first = np.unique(nearest[reaches], return_index=True)
+    mutual_rows = rows[reaches][first]
+    dist = np.full((similarity.shape[1], 2), np.inf, np.float32)
+    idx = np.full((similarity.shape[1], 2), -1, np.int64)
+    idx[columns, 0] = mutual_rows
+    dist[columns, 0] = np.sqrt(np.maximum(2.0 - 2.0 * best[mutual_rows], 0.0))
+    similarity[mutual_rows, columns] = -np.inf
+    second = similarity.max(axis=0)[columns]
+    similarity[mutual_rows, columns] = best[mutual_rows]
+    dist[columns, 1] = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+    return dist, idx
 
 
 def _nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -138,3 +138,33 @@ def test_mutual_matching_is_the_two_way_ratio_test_of_opencvs_brute_force_neighb
     assert len(expected) > 50
     assert np.array_equal(found.pts_a, a.points[[i for i, _ in expected]])
     assert np.array_equal(found.pts_b, b.points[[j for _, j in expected]])
+
+
+def test_the_way_back_from_one_product_is_the_second_products():
+    """Mutual matching reads the way back from the first product: the same pairs and
+    distances as a product of its own, duplicate descriptors included (a column's nearest is
+    the first row that reaches it, and its twin is the second best: no match)."""
+    from pis3r.features import Features, _back_of_nearest, _nearest
+
+    rng = np.random.default_rng(3)
+
+    def unit(x):
+        return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+    base = unit(np.abs(rng.normal(size=(300, 128))))
+    desc_a = np.vstack([base[:1], base[:1], base[1:200]])  # rows 0 and 1 are twins
+    desc_b = unit(base[:250] + 0.05 * np.abs(rng.normal(size=(250, 128))))
+    similarity = desc_a @ desc_b.T
+    nearest = _nearest(similarity, 2)[1][:, 0]
+    dist, idx = _back_of_nearest(similarity.copy(), nearest)
+    full_dist, full_idx = _nearest(desc_b @ desc_a.T, 2)
+    mutual = full_idx[nearest, 0] == np.arange(len(desc_a))
+    columns = nearest[mutual]
+    np.testing.assert_array_equal(idx[columns, 0], full_idx[columns, 0])
+    np.testing.assert_allclose(dist[columns], full_dist[columns], atol=1e-6)
+    assert not np.isin(np.flatnonzero(idx[:, 0] >= 0), columns, invert=True).any()
+    points_a, points_b = rng.uniform(0, 100, (len(desc_a), 2)), rng.uniform(0, 100, (len(desc_b), 2))
+    found = match(Features(points_a, desc_a), Features(points_b, desc_b))
+    assert len(found) > 150
+    # The twins' column has its second best as close as its best: neither twin matches.
+    assert not np.isin(points_a[:2], found.pts_a).all(axis=1).any()
