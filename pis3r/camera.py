@@ -144,13 +144,22 @@ def sampson_distance(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, eps: f
 def sampson_homogeneous(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
     """:func:`sampson_distance` of homogeneous pixels ``x_a``, ``x_b`` ``(N, 3)`` float64
     (last coordinate 1), for callers that evaluate many ``F`` on the same points."""
-    F = np.asarray(F, np.float64)
-    lines_b = x_a @ F.T  # F x_a: epipolar lines in image b
-    lines_a = x_b @ F  # F^T x_b: epipolar lines in image a
-    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
-    norm = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2) + eps
+    _, _, algebraic, root = _sampson_terms(F, x_a, x_b)
+    norm = root + eps
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(norm > 0, algebraic / norm, np.nan)
+
+
+def _sampson_terms(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray):
+    """``(lines_b, lines_a, algebraic, root)`` of the Sampson distance of homogeneous pixels
+    ``(N, 3)``: the epipolar lines ``F x_a`` in b and ``F^T x_b`` in a ``(N, 3)``, ``x_b^T F x_a``
+    and the root of the lines' squared normals ``(N,)``."""
+    F = np.asarray(F, np.float64)
+    lines_b = x_a @ F.T
+    lines_a = x_b @ F
+    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
+    root = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2)
+    return lines_b, lines_a, algebraic, root
 
 
 def sampson_jacobian(F: np.ndarray, dF: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
@@ -159,10 +168,7 @@ def sampson_jacobian(F: np.ndarray, dF: np.ndarray, x_a: np.ndarray, x_b: np.nda
     ``dF`` ``(P, 3, 3)`` (``dF[k] = dF / dp_k``): the chain rule, so a solver's Jacobian
     costs one pass over the points instead of one residual evaluation per parameter.
     Zero where the Sampson distance is undefined (both epipolar lines degenerate)."""
-    F = np.asarray(F, np.float64)
-    lines_b, lines_a = x_a @ F.T, x_b @ F
-    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
-    root = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2)
+    lines_b, lines_a, algebraic, root = _sampson_terms(F, x_a, x_b)
     norm = root + eps
     # (P, 3, N): dF_k x_a and dF_k^T x_b for every point (matmul: einsum is slower here).
     d_lines_b = dF @ x_a.T

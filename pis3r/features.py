@@ -210,11 +210,11 @@ def _back_of_nearest(similarity: np.ndarray, nearest: np.ndarray) -> tuple[np.nd
     dist = np.full((similarity.shape[1], 2), np.inf, np.float32)
     idx = np.full((similarity.shape[1], 2), -1, np.int64)
     idx[columns, 0] = mutual_rows
-    dist[columns, 0] = np.sqrt(np.maximum(2.0 - 2.0 * best[mutual_rows], 0.0))
+    dist[columns, 0] = _cosine_distance(best[mutual_rows])
     similarity[mutual_rows, columns] = -np.inf
     second = similarity.max(axis=0)[columns]
     similarity[mutual_rows, columns] = best[mutual_rows]
-    dist[columns, 1] = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+    dist[columns, 1] = _cosine_distance(second)
     return dist, idx
 
 
@@ -234,8 +234,12 @@ def _nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     else:
         part = np.argpartition(-similarity, k - 1, axis=1)[:, :k]
         idx = np.take_along_axis(part, np.argsort(-similarity[rows, part], axis=1, kind="stable"), axis=1)
-    # RootSIFT vectors have unit L2 norm, so squared distance = 2 - 2 cos.
-    return np.sqrt(np.maximum(2.0 - 2.0 * similarity[rows, idx], 0.0)), idx
+    return _cosine_distance(similarity[rows, idx]), idx
+
+
+def _cosine_distance(cosine: np.ndarray) -> np.ndarray:
+    """L2 distance of unit-norm descriptors (RootSIFT) from their cosine: ``sqrt(2 - 2 cos)``."""
+    return np.sqrt(np.maximum(2.0 - 2.0 * cosine, 0.0))
 
 
 def _approximate_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, k: int):
