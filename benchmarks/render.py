@@ -137,12 +137,11 @@ def speed() -> None:
 def uncut_grid(scene: Scene) -> Triangles:
     """View 1's whole working-resolution grid mesh, every triangle kept, in view 0's camera."""
     mesh = view_mesh(scene.views[1])
-    ref, cam = scene.views[0].camera, scene.views[1].camera
-    R_rel = ref.R @ cam.R.T
-    points = mesh.points.reshape(-1, 3) @ R_rel.T + (ref.t - R_rel @ cam.t)
-    xy = (points[:, :2] / points[:, 2:]) * [ref.K[0, 0], ref.K[1, 1]] + ref.K[:2, 2]
+    cam = scene.views[1].camera
+    # Camera-frame points to the world (x = R X + t), then into the reference.
+    xy, z = scene.views[0].camera.project((mesh.points.reshape(-1, 3) - cam.t) @ cam.R)
     faces = grid_faces(np.ones_like(mesh.keep))
-    return Triangles(xy.astype(np.float32), points[:, 2].astype(np.float32), mesh.pixels, faces)
+    return Triangles(xy.astype(np.float32), z.astype(np.float32), mesh.pixels, faces)
 
 
 def drawn_triangles(scene: Scene, ref_offset: tuple[int, int]) -> list[Triangles]:

@@ -39,6 +39,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pis3r.eval.cases import find_image
+
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 DEFAULT_PAIRS = ("lpc-eyot", "opencv-leuven", "ela-APAP-railtracks", "lpc-office", "spw-10",
                  "scannet-scene0758_00-000165-000510")
@@ -160,7 +162,7 @@ def ratio_to(ours: dict, base: dict | None) -> float | None:
 
 
 def pair_files(folder: Path) -> list[Path]:
-    return [next(folder.glob("ref.*")), next(folder.glob("tgt.*"))]
+    return [find_image(folder, "ref"), find_image(folder, "tgt")]
 
 
 def size_of(path: Path) -> str:

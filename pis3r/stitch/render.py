@@ -281,9 +281,9 @@ def render_to_canvas(
     exposure does not show as a frame around the reference. ``raster_backend``:
     ``"auto"`` (OpenGL where an EGL context can be created, else numpy), ``"gl"`` or
     ``"numpy"`` (:mod:`pis3r.stitch.raster`). ``max_stretch``: see the module docstring
-    (``np.inf`` keeps every surface). There is no device
-    argument: OpenGL runs on whatever device EGL offers (a GPU where present), and the
-    rest of the stage is OpenCV/numpy on the CPU.
+    (``np.inf`` keeps every surface). There is no device argument: OpenGL runs on
+    whatever device EGL offers (a GPU where present), and the rest of the stage is
+    OpenCV/numpy on the CPU.
     """
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
