@@ -27,7 +27,7 @@ from pis3r.options import StitchOptions
 from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer, WarningLog
 from pis3r.reconstruct.base import create_backend, resolve_backend_name
-from pis3r.reconstruct.options import ReconstructOptions
+from pis3r.reconstruct.options import RECONSTRUCT_MODELS, ReconstructOptions
 from pis3r.refine import resolve_refine
 from pis3r.result import StitchResult
 from pis3r.scene import Scene
@@ -115,7 +115,7 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     backend_options = ReconstructOptions(
         focal=options.focal, device=options.device, weights=options.weights, conf_threshold=options.conf_threshold,
         depth_fill=DEFAULT_DEPTH_FILL if options.depth_fill == "auto" else options.depth_fill,
-        model=options.model if options.model in ("homography", "3d") else "auto",
+        model=options.model if options.model in RECONSTRUCT_MODELS else "auto",
     )
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))

@@ -11,6 +11,7 @@ from pis3r.camera import Camera
 
 if TYPE_CHECKING:
     from pis3r.parallax import ParallaxEstimate
+    from pis3r.reconstruct.local_warp import LocalWarp
 
 
 @dataclass(frozen=True)
@@ -20,7 +21,11 @@ class View:
     ``image``: ``(H, W, 3)`` float32 RGB in ``[0, 1]``;
     ``depth``: ``(H, W)`` float32 z-depth in this camera's frame, ``0`` where unknown;
     ``confidence``: ``(H, W)`` float32 in ``[0, 1]`` (``0`` where depth is unknown);
-    ``camera``: intrinsics and world-to-camera pose, sized like ``image``.
+    ``camera``: intrinsics and world-to-camera pose, sized like ``image``;
+    ``warp``: where its pixels land in one other view's image, when the model places them
+    there by local homographies instead of through depth
+    (:class:`pis3r.reconstruct.local_warp.LocalWarp`; rendering onto any other view projects
+    through depth as usual).
     """
 
     image: np.ndarray
@@ -28,6 +33,7 @@ class View:
     depth: np.ndarray
     confidence: np.ndarray
     name: str = ""
+    warp: "LocalWarp | None" = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -72,7 +78,9 @@ class Scene:
 
     ``indices[k]``: which photo ``views[k]`` came from — a position in the list the backend
     received, or, after :meth:`in_input_order`, the caller's input index; ``dropped`` uses
-    the same numbering. ``model``: ``"3d"`` or ``"homography"`` (with ``model_reason``);
+    the same numbering. ``model``: ``"3d"``, ``"homography"`` or ``"apap"`` (the homography's
+    cameras and plane, the other views placed by local homographies: :attr:`View.warp`), with
+    ``model_reason``;
     ``focal`` (pixels, of the first photo) and ``focal_source``: where it came from;
     ``parallax``: the pair's parallax estimate when the backend measured it; ``warnings``:
     one line each, for the user. ``info``: report-only extras (match counts, details).
@@ -104,7 +112,8 @@ class Scene:
         pairs = sorted(zip((order[k] for k in self.indices), self.views), key=lambda pair: pair[0])
         return replace(
             self,
-            views=tuple(view for _, view in pairs),
+            views=tuple(view if view.warp is None else replace(view, warp=view.warp.with_onto(order[view.warp.onto]))
+                        for _, view in pairs),
             indices=tuple(index for index, _ in pairs),
             dropped=tuple(replace(d, index=order[d.index]) for d in self.dropped),
         )

@@ -1,23 +1,13 @@
-"""APAP — as-projective-as-possible warping with moving DLT (Zaragoza et al., TPAMI 2014).
+"""APAP — as-projective-as-possible warping with moving DLT (Zaragoza et al., TPAMI 2014),
+the peer the evaluation measures pis3r against, as the public Python port of APAP runs it:
 
-Implemented from the paper's equations, vectorised over all grid cells:
-
-- global DLT (eq. 3-5): ``h = argmin ||A h||`` s.t. ``||h|| = 1``, on Hartley-normalised
-  matches, ``A`` stacks two rows per match;
-- moving DLT (eq. 7-9): for each cell centre ``x*`` of a grid laid over the canvas,
-  ``h* = argmin ||W* A h||`` with ``W* = diag(w_1, w_1, ..., w_N, w_N)`` and
-  ``w_i = max(exp(-||x* - x_i|| / sigma^2), gamma)`` in reference pixels, ``sigma = 8.5``,
-  ``gamma = 0.0015``: the kernel and settings the public Python port of APAP runs with.
-  (Eq. 8 prints the distance squared; with sigma = 8.5 px that kernel falls to gamma 22 px
-  from a match and leaves the global homography almost everywhere.) ``gamma`` keeps the
-  fit close to the global homography far from any match;
+- matches: plain SIFT, ratio test, the inliers of one loose homography (:func:`match_features`);
+- moving DLT (:func:`pis3r.reconstruct.local_warp.moving_dlt`) at each cell centre of a grid
+  laid over the canvas, in reference pixels, ``sigma = 8.5`` px and ``gamma = 0.0015``: the
+  port's settings, whatever the image size;
 - every canvas pixel takes the homography of its cell; the target is warped onto the
   reference frame and blended with the reference by feathering (linear weights growing
   with the distance to each image's border).
-
-``||W A h||^2 = h^T (sum_i w_i^2 M_i) h`` with ``M_i = a_i1^T a_i1 + a_i2^T a_i2`` (9 x 9),
-so every cell's solution is the eigenvector of the smallest eigenvalue of one weighted sum
-of the ``M_i``: one matrix product over all cells, then a batched ``eigh``.
 """
 
 from __future__ import annotations
@@ -30,6 +20,7 @@ import numpy as np
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import OPENCV_CONTRAST_THRESHOLD, detect, match
 from pis3r.io import to_uint8
+from pis3r.reconstruct.local_warp import moving_dlt
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.stitch.render import DEFAULT_MAX_CANVAS_SCALE
 
@@ -80,54 +71,6 @@ def match_features(reference: np.ndarray, target: np.ndarray, ratio: float = 0.8
     if keep.sum() < MIN_MATCHES:
         raise NotEnoughOverlapError(f"APAP: {int(keep.sum())} consistent matches")
     return matches.pts_a[keep], matches.pts_b[keep]
-
-
-def hartley_normalisation(points: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` similarity moving ``(N, 2)`` points to zero mean, mean distance sqrt(2)."""
-    centre = points.mean(axis=0)
-    scale = np.sqrt(2.0) / max(np.linalg.norm(points - centre, axis=1).mean(), 1e-12)
-    return np.array([[scale, 0.0, -scale * centre[0]], [0.0, scale, -scale * centre[1]], [0.0, 0.0, 1.0]])
-
-
-def dlt_blocks(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """``M_i = a_i1^T a_i1 + a_i2^T a_i2`` ``(N, 9, 9)`` for ``dst ~ H src`` (normalised
-    ``(N, 2)`` points), where ``a_i1, a_i2`` are the two DLT rows of match ``i``."""
-    x, y = src[:, 0], src[:, 1]
-    u, v = dst[:, 0], dst[:, 1]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    row1 = np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], axis=1)
-    row2 = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], axis=1)
-    return row1[:, :, None] * row1[:, None, :] + row2[:, :, None] * row2[:, None, :]
-
-
-def smallest_eigenvectors(matrices: np.ndarray) -> np.ndarray:
-    """Unit eigenvectors ``(B, 9)`` of the smallest eigenvalue of symmetric ``(B, 9, 9)``."""
-    _, vectors = np.linalg.eigh(matrices)
-    return vectors[:, :, 0]
-
-
-def moving_dlt(
-    pts_ref: np.ndarray, pts_tgt: np.ndarray, centres: np.ndarray, sigma: float, gamma: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Local homographies (reference px -> target px) ``(C, 3, 3)`` at ``centres`` ``(C, 2)``
-    (reference px) and the global one ``(3, 3)``, from matches ``(N, 2)``, ``(N, 2)``;
-    ``sigma`` (px) and ``gamma`` as in the module docstring."""
-    T_ref, T_tgt = hartley_normalisation(pts_ref), hartley_normalisation(pts_tgt)
-    src = pts_ref @ T_ref[:2, :2].T + T_ref[:2, 2]
-    dst = pts_tgt @ T_tgt[:2, :2].T + T_tgt[:2, 2]
-    blocks = dlt_blocks(src, dst).reshape(len(src), 81)
-    denormalise = np.linalg.inv(T_tgt)
-
-    def to_pixels(h: np.ndarray) -> np.ndarray:
-        H = denormalise @ h.reshape(-1, 3, 3) @ T_ref
-        return H / H[:, 2:3, 2:3]
-
-    global_h = to_pixels(smallest_eigenvectors(blocks.sum(axis=0).reshape(1, 9, 9)))[0]
-    distance = np.linalg.norm(centres[:, None, :] - pts_ref[None, :, :], axis=2)
-    weights = np.maximum(np.exp(-distance / sigma**2), gamma)
-    # ||W A h||^2 weights each match's two rows by w_i^2.
-    local = smallest_eigenvectors((weights**2 @ blocks).reshape(-1, 9, 9))
-    return to_pixels(local), global_h
 
 
 def canvas_box(reference_shape: tuple[int, int], target_shape: tuple[int, int], H_ref_to_tgt: np.ndarray):

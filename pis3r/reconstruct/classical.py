@@ -16,6 +16,7 @@ Works offline on any machine. For the reference (view 0) and every other view:
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -28,8 +29,10 @@ from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
+from pis3r.reconstruct.local_warp import fit_local_warp
 from pis3r.reconstruct.pairs import PairGeometry, PhotoFeatures, consistent_matches, estimate_pair
 from pis3r.reconstruct.propagate import propagate_inverse_depth
+from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import DroppedView, Scene, View
 
 WORK_MAX_SIDE = 640
@@ -39,6 +42,9 @@ DEPTH_EDGE_JUMP = 0.08
 # A view that does not overlap the reference tries this many registered views (those it
 # shares the most matches with) before it is dropped.
 CHAIN_ANCHORS = 3
+# The ``apap`` model keeps the matches one homography explains within this many pixels of
+# a 1024 x 768 image (APAP's loose RANSAC step, 10 px at the size it was tuned at).
+LOCAL_WARP_THRESHOLD_PX = 10.0
 
 
 def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
@@ -93,7 +99,7 @@ class ClassicalReconstructor:
                     raise
                 failures[j] = str(exc)
                 continue
-            first, registered[0], registered[j] = pair, view_ref, view_j
+            first, registered[0], registered[j] = pair, view_ref, self._placed(view_j, pair, photos[j], ref, 0)
             warnings += pair.warnings
         if first is None:
             reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
@@ -107,7 +113,8 @@ class ClassicalReconstructor:
                 # Later pairs keep the first pair's reference focal.
                 pair = self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
                                           True, True)
-                return pair, self._views(ref, photos[j], pair, registered[0].depth)[1]
+                return pair, self._placed(self._views(ref, photos[j], pair, registered[0].depth)[1], pair, photos[j],
+                                          ref, 0)
             except Pis3rError as exc:
                 return exc, None
 
@@ -122,8 +129,11 @@ class ClassicalReconstructor:
         warnings += self._attach_through_others(photos, features, registered, failures)
         indices = sorted(registered)
         dropped = tuple(DroppedView(j, photos[j].name, reason) for j, reason in sorted(failures.items()))
+        model, reason = first.model, first.model_reason
+        if self.options.model == "apap":
+            model, reason = "apap", f"{reason}; the views placed by local homographies (APAP's moving DLT)"
         return Scene(
-            [registered[i] for i in indices], indices, dropped, model=first.model, model_reason=first.model_reason,
+            [registered[i] for i in indices], indices, dropped, model=model, model_reason=reason,
             focal=float(first.K_a[0, 0]), focal_source=first.focal_source, parallax=first.parallax,
             warnings=tuple(warnings),
             info={"backend": self.name, "num_matches": first.num_matches, **first.info},
@@ -180,8 +190,27 @@ class ClassicalReconstructor:
                 + (f" between {ref.photo.name} and {other.photo.name}" if named else "")
             )
         self._reject_identical(found.matches, ref.photo, other.photo)
+        # APAP's views have the homography's cameras and plane.
+        model = "homography" if self.options.model == "apap" else self.options.model
         return estimate_pair(ref.photo, other.photo, found, focal_ref, self._known_focal(other.photo)[0], source,
-                             focal_is_final, self.options.model, self.options.focal_rule, self._memoised)
+                             focal_is_final, model, self.options.focal_rule, self._memoised)
+
+    def _placed(self, view: View, pair: PairGeometry, photo: Photo, onto_photo: Photo, onto: int) -> View:
+        """``view`` (of ``photo``, paired with ``onto_photo``, view ``onto``), placed onto it by local
+        homographies when the model is ``apap``: moving DLT over the pair's epipolar inliers
+        that one homography explains within ``LOCAL_WARP_THRESHOLD_PX`` (APAP's loose RANSAC
+        step: mismatches along epipolar lines out; matches off the dominant plane, which the
+        local fits follow, in)."""
+        if self.options.model != "apap":
+            return view
+        inliers = pair.inliers
+        threshold = LOCAL_WARP_THRESHOLD_PX * float(np.hypot(photo.width, photo.height) / np.hypot(1024, 768))
+        _, keep = fit_homography(inliers.pts_b, inliers.pts_a, threshold, MATCH_FILTER)
+        if keep.sum() < MIN_MATCHES:
+            raise ReconstructionError(f"{photo.name}: too few matches for local homographies")
+        warp = fit_local_warp(inliers.pts_b[keep], inliers.pts_a[keep], photo.width, photo.height, onto,
+                              float(np.hypot(onto_photo.width, onto_photo.height)))
+        return replace(view, warp=warp)
 
     def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth) -> tuple[View | None, View]:
         """The pair's two views. With ``ref_depth`` (``ref``'s depth in the scene already

@@ -9,9 +9,10 @@ from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL
 
 # Points whose confidence (0..1) is below this are dropped; 0 keeps all, as the paper does.
 DEFAULT_CONF_THRESHOLD = 0.0
-# ``auto``: the backend's own degeneracy test; ``homography`` (rotation or one plane) or
-# ``3d`` force a model where the backend has a choice (the classical one).
-RECONSTRUCT_MODELS = ("auto", "homography", "3d")
+# ``auto``: the backend's own degeneracy test; ``homography`` (rotation or one plane),
+# ``apap`` (the homography's cameras, the views placed by local homographies) or ``3d``
+# force a model where the backend has a choice (the classical one).
+RECONSTRUCT_MODELS = ("auto", "homography", "apap", "3d")
 # An unknown focal of a pair with a baseline: ``calibrated`` from the matches (essential
 # matrix + refinement), or held at the ``prior`` (1.2 x the longest side). Two views with
 # little parallax leave the focal weakly determined, and a wrong self-calibration bends the

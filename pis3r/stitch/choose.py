@@ -40,11 +40,11 @@ BAND_VIEWS = 2
 # ``auto``: the band chooses between the backend's own explanation (its degeneracy test:
 # rotation, plane or 3-D, focal self-calibrated) and one homography: a 3-D model must
 # predict the held-back band better than the plain warp to be used. ``band``: among every
-# candidate (one homography; the 3-D model with each depth fill, its focal self-calibrated
-# or held at the prior). The others force one. The wider set is opt-in: whether the band
-# tells a self-calibrated focal from the prior is close to a coin toss where they differ
-# little on the band, and a wrong pick costs dB (see the README).
-MODEL_CHOICES = ("auto", "band", "homography", "3d")
+# candidate (also APAP's local homographies, and the 3-D model with each depth fill, its
+# focal self-calibrated or held at the prior). The others force one. The wider set is
+# opt-in: the band does not yet tell reliably when a self-calibrated focal or the local
+# homographies beat the default's candidates, and a wrong pick costs dB (see the README).
+MODEL_CHOICES = ("auto", "band", "homography", "apap", "3d")
 DEFAULT_MODEL = "auto"
 # ``auto``: the band test chooses the 3-D model's depth fill too.
 DEPTH_FILL_CHOICES = (*DEPTH_FILLS, "auto")
@@ -53,8 +53,8 @@ DEFAULT_DEPTH_FILL_CHOICE = DEFAULT_DEPTH_FILL
 
 @dataclass(frozen=True)
 class Candidate:
-    """One explanation of the photos: ``model`` (``homography``, ``3d``, or ``auto``: the
-    backend's test), for ``3d`` its ``depth_fill`` (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`),
+    """One explanation of the photos: ``model`` (``homography``, ``apap``, ``3d``, or ``auto``:
+    the backend's test), for ``3d`` its ``depth_fill`` (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`),
     and how an unknown focal is found (``focal_rule``, :data:`pis3r.reconstruct.options.FOCAL_RULES`;
     ``None``: the backend's default)."""
 
@@ -116,7 +116,8 @@ def candidates(model: str, depth_fill: str) -> list[Candidate]:
     named = depth_fill == "auto"  # a fixed fill is the backend options' already
     if model == "auto":
         return [*(Candidate("auto", fill if named else None) for fill in fills), Candidate("homography")]
-    found = [Candidate("homography")] if model in ("band", "homography") else []
+    found = [Candidate("homography"), Candidate("apap")] if model == "band" else (
+        [Candidate(model)] if model in ("homography", "apap") else [])
     if model in ("band", "3d"):
         found += [Candidate("3d", fill) for fill in fills]
     if model == "band":

@@ -1,7 +1,9 @@
 """Rendering every view's surface into the reference camera with one z-buffer.
 
 Each view but the reference becomes its cut mesh (:mod:`pis3r.mesh`); the triangles
-go into the reference camera, and at every canvas pixel the nearest surface wins
+go into the reference camera (through their depth, or, for a view the model places by
+local homographies, :attr:`pis3r.scene.View.warp`, through those: its whole photo at unit
+depth), and at every canvas pixel the nearest surface wins
 (:mod:`pis3r.stitch.raster`). The rasteriser returns, per pixel, the sub-pixel
 position in the winning view's full-resolution image that the surface shows there;
 the colour is sampled there (backward mapping, ``cv2.remap``), so a magnified view is
@@ -30,7 +32,7 @@ Which surfaces enter the canvas (on top of the mesh's cut rule):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -128,6 +130,12 @@ def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
     for index, view in enumerate(scene.views):
         if index == ref_index:
             continue
+        if view.warp is not None and view.warp.onto == scene.indices[ref_index]:
+            # Placed by its local homographies, not through depth: the whole photo is a surface
+            # at unit depth (the plane of a homography has a horizon; the warp does not).
+            mesh = view_mesh(replace(view, depth=np.ones_like(view.depth)), MESH_MAX_SIDE)
+            meshes.append((index, mesh, None, ref.focal / view.camera.focal))
+            continue
         mesh = view_mesh(view, MESH_MAX_SIDE)
         cam = view.camera
         # view camera -> reference camera: x_ref = R_rel x_view + t_rel with R_rel = R_ref R_view^T
@@ -135,17 +143,22 @@ def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
         t_rel = ref.t - R_rel @ cam.t
         points = mesh.points @ R_rel.T.astype(np.float32) + t_rel.astype(np.float32)
         meshes.append((index, mesh, points, ref.focal / cam.focal))
-    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes] or [[]])
+    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes
+                            if points is not None] or [[]])
     positive = z_all[z_all > 0]
     min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
 
     surfaces, counts = [], []
     for index, mesh, points, focal_ratio in meshes:
-        z = points[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
-                           ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
-        in_front = np.all(grid_corners(z > min_z), axis=0)
+        if points is None:
+            z = np.ones(mesh.points.shape[:2], np.float32)
+            xy = scene.views[index].warp.apply(mesh.pixels).reshape(z.shape + (2,))
+        else:
+            z = points[..., 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
+                               ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
+        in_front = np.all(grid_corners((z > min_z) & np.isfinite(xy).all(axis=-1)), axis=0)
         canvas_area = signed_area(*grid_corners(xy))
         front_facing = canvas_area > 0
         # Both triangles of a grid block have half its area in source pixels.

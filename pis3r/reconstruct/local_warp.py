@@ -1,0 +1,132 @@
+"""As-projective-as-possible local homographies: APAP's moving DLT (Zaragoza et al., TPAMI 2014).
+
+One homography explains a rotation or a plane exactly; a scene with depth it explains only
+on average. Moving DLT fits, at every cell of a grid, the homography of all matches
+weighted by their distance to the cell: near matches it follows the scene's local
+surface, far from them it relaxes to the global fit. It needs no focal and no depth, so
+where a pair's focal or depth beyond the overlap is unsure it is often the better
+prediction of the extension (``--model apap``; ``--model band`` lets the held-back band
+choose it, :mod:`pis3r.stitch.choose`).
+
+- global DLT (eq. 3-5): ``h = argmin ||A h||`` s.t. ``||h|| = 1``, on Hartley-normalised
+  matches, ``A`` stacks two rows per match;
+- moving DLT (eq. 7-9): at each cell centre ``x*``, ``h* = argmin ||W* A h||`` with
+  ``W* = diag(w_1, w_1, ..., w_N, w_N)`` and ``w_i = max(exp(-||x* - x_i|| / sigma^2), gamma)``.
+  (Eq. 8 prints the distance squared; the public Python port of APAP runs this kernel with
+  ``sigma = 8.5`` px on images of about 720 px diagonal, which is what ``KERNEL_LENGTH``
+  says relative to the image. ``gamma`` keeps a cell far from every match at the global fit.)
+
+``||W A h||^2 = h^T (sum_i w_i^2 M_i) h`` with ``M_i = a_i1^T a_i1 + a_i2^T a_i2`` (9 x 9), so
+every cell's solution is the eigenvector of the smallest eigenvalue of one weighted sum of
+the ``M_i``: one matrix product over all cells, then a batched ``eigh``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# Moving-DLT kernel: its length ``sigma^2`` as a share of the image diagonal, and its floor.
+KERNEL_LENGTH = 0.1
+GAMMA = 0.0015
+# Cells of the grid along the image's longer side.
+GRID_CELLS = 100
+# Matches used at most (the weighted sums cost cells x matches x 81); a fixed draw.
+MAX_MATCHES = 3000
+
+
+def hartley_normalisation(points: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` similarity moving ``(N, 2)`` points to zero mean, mean distance sqrt(2)."""
+    centre = points.mean(axis=0)
+    scale = np.sqrt(2.0) / max(np.linalg.norm(points - centre, axis=1).mean(), 1e-12)
+    return np.array([[scale, 0.0, -scale * centre[0]], [0.0, scale, -scale * centre[1]], [0.0, 0.0, 1.0]])
+
+
+def dlt_blocks(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``M_i = a_i1^T a_i1 + a_i2^T a_i2`` ``(N, 9, 9)`` for ``dst ~ H src`` (normalised
+    ``(N, 2)`` points), where ``a_i1, a_i2`` are the two DLT rows of match ``i``."""
+    x, y = src[:, 0], src[:, 1]
+    u, v = dst[:, 0], dst[:, 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    row1 = np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], axis=1)
+    row2 = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], axis=1)
+    return row1[:, :, None] * row1[:, None, :] + row2[:, :, None] * row2[:, None, :]
+
+
+def smallest_eigenvectors(matrices: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors ``(B, 9)`` of the smallest eigenvalue of symmetric ``(B, 9, 9)``."""
+    _, vectors = np.linalg.eigh(matrices)
+    return vectors[:, :, 0]
+
+
+def moving_dlt(
+    pts_src: np.ndarray, pts_dst: np.ndarray, centres: np.ndarray, sigma: float, gamma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Local homographies (src px -> dst px) ``(C, 3, 3)`` at ``centres`` ``(C, 2)`` (src px)
+    and the global one ``(3, 3)``, from matches ``(N, 2)``, ``(N, 2)``; ``sigma`` (px) and
+    ``gamma`` as in the module docstring."""
+    T_src, T_dst = hartley_normalisation(pts_src), hartley_normalisation(pts_dst)
+    src = pts_src @ T_src[:2, :2].T + T_src[:2, 2]
+    dst = pts_dst @ T_dst[:2, :2].T + T_dst[:2, 2]
+    blocks = dlt_blocks(src, dst).reshape(len(src), 81)
+    denormalise = np.linalg.inv(T_dst)
+
+    def to_pixels(h: np.ndarray) -> np.ndarray:
+        H = denormalise @ h.reshape(-1, 3, 3) @ T_src
+        return H / H[:, 2:3, 2:3]
+
+    global_h = to_pixels(smallest_eigenvectors(blocks.sum(axis=0).reshape(1, 9, 9)))[0]
+    distance = np.linalg.norm(centres[:, None, :] - pts_src[None, :, :], axis=2)
+    weights = np.maximum(np.exp(-distance / sigma**2), gamma)
+    # ||W A h||^2 weights each match's two rows by w_i^2.
+    local = smallest_eigenvectors((weights**2 @ blocks).reshape(-1, 9, 9))
+    return to_pixels(local), global_h
+
+
+@dataclass(frozen=True)
+class LocalWarp:
+    """Where the pixels of one view land in the image of another (``onto``: that view's
+    index, as in :attr:`pis3r.scene.Scene.indices`): ``homographies`` ``(rows, cols, 3, 3)``,
+    one per ``cell``-pixel square of the view, each taking this view's pixels to ``onto``'s."""
+
+    homographies: np.ndarray
+    cell: int
+    onto: int
+
+    def apply(self, pixels: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` float32 positions in ``onto``'s image of ``pixels`` ``(N, 2)`` of this
+        view (each by its cell's homography); NaN where that homography sends it to infinity
+        or behind (a non-positive denominator)."""
+        rows, cols = self.homographies.shape[:2]
+        col = np.clip((pixels[:, 0] // self.cell).astype(np.int64), 0, cols - 1)
+        row = np.clip((pixels[:, 1] // self.cell).astype(np.int64), 0, rows - 1)
+        H = self.homographies[row, col]
+        homogeneous = np.einsum("nij,nj->ni", H, np.hstack([pixels, np.ones((len(pixels), 1))]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mapped = homogeneous[:, :2] / homogeneous[:, 2:]
+        mapped[homogeneous[:, 2] <= 0] = np.nan
+        return mapped.astype(np.float32)
+
+    def with_onto(self, onto: int) -> "LocalWarp":
+        return LocalWarp(self.homographies, self.cell, onto)
+
+
+def fit_local_warp(pts_view: np.ndarray, pts_onto: np.ndarray, width: int, height: int, onto: int,
+                   onto_diagonal: float) -> LocalWarp:
+    """The moving-DLT warp of a ``width x height`` view onto view ``onto`` (an image of
+    ``onto_diagonal`` px) from matches ``(N, 2)`` (view px) -> ``(N, 2)`` (``onto`` px), at
+    least 4, on a grid of ``GRID_CELLS`` along the longer side. The kernel is
+    ``KERNEL_LENGTH`` of the diagonal of the image the view is placed onto: that is the
+    picture whose structure it follows."""
+    if len(pts_view) > MAX_MATCHES:
+        keep = np.random.default_rng(0).choice(len(pts_view), MAX_MATCHES, replace=False)
+        pts_view, pts_onto = pts_view[keep], pts_onto[keep]
+    cell = max(1, math.ceil(max(width, height) / GRID_CELLS))
+    cols, rows = -(-width // cell), -(-height // cell)
+    cy, cx = np.mgrid[0:rows, 0:cols]
+    centres = np.stack([cx.ravel(), cy.ravel()], axis=1) * cell + (cell - 1) / 2.0
+    sigma = math.sqrt(KERNEL_LENGTH * onto_diagonal)
+    local, _ = moving_dlt(pts_view, pts_onto, centres, sigma, GAMMA)
+    return LocalWarp(local.reshape(rows, cols, 3, 3), cell, onto)
