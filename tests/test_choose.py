@@ -10,7 +10,7 @@ import pytest
 import pis3r
 from pis3r.io import Photo
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.stitch.choose import BandScore, Candidate, band_psnr, candidates, choose_model
+from pis3r.stitch.choose import BAND_HANDICAP_DB, BandScore, Candidate, band_psnr, best_score, candidates, choose_model
 
 
 def test_band_psnr_rewards_right_pixels_and_charges_uncovered_ones_a_mean_guess():
@@ -34,10 +34,11 @@ def test_candidates_follow_the_model_and_depth_fill_choices():
                                           Candidate("3d", "harmonic"), Candidate("3d", "planes"),
                                           Candidate("3d", "planar", "prior"), Candidate("3d", "harmonic", "prior"),
                                           Candidate("3d", "planes", "prior")]
-    # The default: the backend's own explanation first (it wins a tie), then one homography.
-    assert candidates("auto", "planar") == [Candidate("auto"), Candidate("homography")]
+    # The default: the backend's own explanation first (it wins a tie), then one homography
+    # and APAP's local homographies.
+    assert candidates("auto", "planar") == [Candidate("auto"), Candidate("homography"), Candidate("apap")]
     assert candidates("auto", "auto") == [Candidate("auto", "planar"), Candidate("auto", "harmonic"),
-                                          Candidate("auto", "planes"), Candidate("homography")]
+                                          Candidate("auto", "planes"), Candidate("homography"), Candidate("apap")]
     assert candidates("3d", "auto") == [Candidate("3d", "planar"), Candidate("3d", "harmonic"),
                                         Candidate("3d", "planes")]
     assert candidates("band", "harmonic") == [Candidate("homography"), Candidate("apap"), Candidate("3d", "harmonic"),
@@ -57,14 +58,14 @@ def test_nothing_to_choose_runs_no_band_test():
 def test_when_no_candidate_can_stitch_the_band_the_backend_decides():
     blank = [Photo(np.zeros((64, 64, 3), np.float32), "a"), Photo(np.zeros((64, 64, 3), np.float32), "b")]
     choice = choose_model(blank, "classical", ReconstructOptions(), model="auto")
-    assert choice.chosen is None and len(choice.scores) == 2
+    assert choice.chosen is None and len(choice.scores) == 3
     assert all(score.psnr == -math.inf and score.error for score in choice.scores)
 
 
 @pytest.mark.parametrize("model, labels", [
     ("band", ["homography", "apap", "3d/planar", "3d/harmonic", "3d/planes", "3d/planar/prior",
               "3d/harmonic/prior", "3d/planes/prior"]),
-    ("auto", ["auto/planar", "auto/harmonic", "auto/planes", "homography"]),
+    ("auto", ["auto/planar", "auto/harmonic", "auto/planes", "homography", "apap"]),
 ])
 def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candidate(small_pair, model, labels):
     # Two crops of one photo: the target is exactly a shift of the reference's image plane.
@@ -72,13 +73,14 @@ def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candida
     choice = result.report["model_choice"]
     assert [Candidate(c["model"], c["depth_fill"], c["focal_rule"]).label for c in choice["candidates"]] == labels
     scores = [c["band_psnr"] if c["band_psnr"] is not None else -math.inf for c in choice["candidates"]]
-    best = choice["candidates"][int(np.argmax(scores))]
+    handicapped = [score - BAND_HANDICAP_DB.get(c["model"], 0.0) for c, score in zip(choice["candidates"], scores)]
+    best = choice["candidates"][int(np.argmax(handicapped))]
     if best["model"] == "auto":
         # The backend's own test stands for the model it made on the band: that one stitches.
         assert choice["chosen"]["model"] in ("homography", "3d")
     else:
         # The report rounds the scores: candidates that tie there may be either.
-        tied = [c for c, score in zip(choice["candidates"], scores) if score == max(scores)]
+        tied = [c for c, score in zip(choice["candidates"], handicapped) if score == max(handicapped)]
         assert choice["chosen"] in [{key: c[key] for key in ("model", "depth_fill", "focal_rule")} for c in tied]
     assert result.report["model"] == choice["chosen"]["model"]
     # A shift of the image plane is a homography: it predicts the band nearly exactly, within
@@ -98,8 +100,9 @@ def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypat
                         original(candidate, *args))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
-    assert rendered == [Candidate("auto")]
-    assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography")]
+    assert rendered == [Candidate("auto"), Candidate("apap")]
+    assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography"),
+                                                            Candidate("apap")]
     # The backend's test made a homography on the band: that, not the test, makes the stitch.
     assert choice.scores[0].psnr == choice.scores[1].psnr and choice.chosen == Candidate("homography")
 
@@ -114,7 +117,7 @@ def test_the_band_test_reads_the_reference_and_the_next_photo_only(small_pair, m
                         lambda self, photos: seen.append(len(photos)) or original(self, photos))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair * 2, "abcd")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
-    assert len(choice.scores) == 2 and set(seen) == {2}
+    assert len(choice.scores) == 3 and set(seen) == {2}
 
 
 def test_forcing_a_model_skips_the_band_test(small_pair):
@@ -122,7 +125,20 @@ def test_forcing_a_model_skips_the_band_test(small_pair):
     assert result.report["model_choice"]["candidates"] == []
     assert result.report["model_choice"]["chosen"] == {"model": "3d", "depth_fill": "harmonic", "focal_rule": None}
     default = pis3r.stitch(list(small_pair), backend="classical")
-    assert [c["model"] for c in default.report["model_choice"]["candidates"]] == ["auto", "homography"]
+    assert [c["model"] for c in default.report["model_choice"]["candidates"]] == ["auto", "homography", "apap"]
+
+
+def test_the_local_homographies_must_beat_the_others_by_their_handicap():
+    def scores(apap_psnr):
+        return (BandScore(Candidate("auto"), 20.0, 1.0), BandScore(Candidate("homography"), 20.2, 1.0),
+                BandScore(Candidate("apap"), apap_psnr, 1.0))
+
+    margin = BAND_HANDICAP_DB["apap"]
+    assert best_score(scores(20.2 + margin / 2)) == 1  # ahead, but within the band's noise
+    assert best_score(scores(20.2 + 2 * margin)) == 2
+    assert best_score(scores(-math.inf)) == 1
+    # Equal scores: the first candidate (the backend's own explanation) wins.
+    assert best_score((BandScore(Candidate("auto"), 20.0, 1.0), BandScore(Candidate("homography"), 20.0, 1.0))) == 0
 
 
 def test_a_candidate_that_cannot_stitch_the_band_scores_minus_infinity():

@@ -158,3 +158,20 @@ def test_models_of_one_pair_share_its_essential_fits(monkeypatch):
     np.testing.assert_allclose(shared[0].R, alone.R, atol=1e-9)
     np.testing.assert_allclose(shared[2].R, alone.R, atol=1e-9)
     assert shared[1].model == "homography"
+
+
+def test_models_of_one_rotation_share_its_rotation_fit(monkeypatch):
+    """The homography and APAP candidates of a rotation fit its rotation (focal from the
+    homography, refined) once between them, and export the same cameras."""
+    import pis3r.reconstruct.pairs as pairs
+
+    a, b, _ = rotation_photos()
+    calls = []
+    rotation = pairs._rotation
+    monkeypatch.setattr(pairs, "_rotation", lambda *args: calls.append(1) or rotation(*args))
+    memo = {}
+    homography, apap = (ClassicalReconstructor(ReconstructOptions(model=model), memo).cameras(a, b)
+                        for model in ("homography", "apap"))
+    assert len(calls) == 1 and homography.model == apap.model == "homography"
+    np.testing.assert_array_equal(homography.R, apap.R)
+    np.testing.assert_array_equal(homography.K_a, apap.K_a)

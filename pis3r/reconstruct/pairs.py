@@ -146,7 +146,7 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     an unknown focal of a pair with a baseline is ``calibrated`` from the matches or held at
     the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`). ``remember(key, compute)``:
     a memo shared by estimates of the same pair under other models (the held-back band test),
-    so the homography and essential-matrix fits run once: every random draw of an estimate is
+    so the homography, rotation and essential-matrix fits run once: every random draw of an estimate is
     then its first caller's, as it would have been in each caller (each starts from one seed)."""
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
@@ -175,8 +175,10 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     planar = model == "homography" or (
         model == "auto" and (parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION))
     why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
-    rotation = _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
-                         focal_is_final) if planar else None
+    relations = tuple((h.ratio, h.focal_a, h.prior_a) for h in hypotheses)
+    rotation = remember(("rotation", matches_key, relations, known_source, focal_is_final),
+                        lambda: _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
+                                          focal_is_final)) if planar else None
     if rotation is not None:
         fit, source, warnings, details = rotation
         # The homography keeps rendering the pair: as its plane (exactly) unless the

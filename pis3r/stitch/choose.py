@@ -38,14 +38,21 @@ BAND_FRACTION = 0.15
 BAND_WORK_SIDE = 480
 BAND_VIEWS = 2
 # ``auto``: the band chooses between the backend's own explanation (its degeneracy test:
-# rotation, plane or 3-D, focal self-calibrated) and one homography: a 3-D model must
-# predict the held-back band better than the plain warp to be used. ``band``: among every
-# candidate (also APAP's local homographies, and the 3-D model with each depth fill, its
-# focal self-calibrated or held at the prior). The others force one. The wider set is
-# opt-in: the band does not yet tell reliably when a self-calibrated focal or the local
-# homographies beat the default's candidates, and a wrong pick costs dB (see the README).
+# rotation, plane or 3-D, focal self-calibrated), one homography and APAP's local
+# homographies (no focal, no depth): a 3-D model must predict the held-back band better
+# than the warps to be used. ``band``: among every candidate (also the 3-D model with each
+# depth fill, its focal self-calibrated or held at the prior). The others force one. The
+# wider set is opt-in: whether the band tells a self-calibrated focal from the prior is
+# close to a coin toss where they differ little on the band, and a wrong pick costs dB
+# (see the README).
 MODEL_CHOICES = ("auto", "band", "homography", "apap", "3d")
 DEFAULT_MODEL = "auto"
+# The local homographies must predict the band better than every other candidate by this
+# much (dB) to make the stitch: they have hundreds of parameters to a homography's eight,
+# and band scores this close are the band's noise, not evidence (on the crop protocol the
+# pairs where they then lost were 0.01-0.06 dB ahead on the band, those where they won
+# 0.2-1.7 dB).
+BAND_HANDICAP_DB = {"apap": 0.1}
 # ``auto``: the band test chooses the 3-D model's depth fill too.
 DEPTH_FILL_CHOICES = (*DEPTH_FILLS, "auto")
 DEFAULT_DEPTH_FILL_CHOICE = DEFAULT_DEPTH_FILL
@@ -114,10 +121,10 @@ def candidates(model: str, depth_fill: str) -> list[Candidate]:
     forced, no band test). The backend's own explanation comes first: it wins a tie."""
     fills = DEPTH_FILLS if depth_fill == "auto" else (depth_fill,)
     named = depth_fill == "auto"  # a fixed fill is the backend options' already
+    warps = [Candidate("homography"), Candidate("apap")]
     if model == "auto":
-        return [*(Candidate("auto", fill if named else None) for fill in fills), Candidate("homography")]
-    found = [Candidate("homography"), Candidate("apap")] if model == "band" else (
-        [Candidate(model)] if model in ("homography", "apap") else [])
+        return [*(Candidate("auto", fill if named else None) for fill in fills), *warps]
+    found = warps if model == "band" else [Candidate(model)] if model in ("homography", "apap") else []
     if model in ("band", "3d"):
         found += [Candidate("3d", fill) for fill in fills]
     if model == "band":
@@ -151,10 +158,16 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
         BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
         for candidate, (predicted, covered, error, _) in zip(allowed, renders)
     )
-    best = max(range(len(scores)), key=lambda k: scores[k].psnr)
+    best = best_score(scores)
     if not math.isfinite(scores[best].psnr):
         return ModelChoice(None, scores)
     return ModelChoice(_as_tested(scores[best].candidate, renders[best][3]), scores)
+
+
+def best_score(scores: tuple[BandScore, ...]) -> int:
+    """Index of the candidate that makes the stitch: the best band score once each is
+    handicapped by ``BAND_HANDICAP_DB`` for its model (the first of equals)."""
+    return max(range(len(scores)), key=lambda k: scores[k].psnr - BAND_HANDICAP_DB.get(scores[k].candidate.model, 0.0))
 
 
 def _as_tested(candidate: Candidate, scene_model: str) -> Candidate:
