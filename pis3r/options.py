@@ -68,9 +68,10 @@ class StitchOptions:
         low=0.0, high=1.0, kind=float)
     model: str = _option(
         DEFAULT_MODEL, "How the other views are explained: one homography (rotation or one plane), APAP's "
-        "local homographies (apap: no focal, no depth) or a 3-D scene. auto: the backend's degeneracy test "
-        "or one homography, whichever best predicts a held-back band of the reference; band: the best of "
-        "every candidate (also apap, 3-D with each depth fill and with the focal at its prior).",
+        "local homographies (apap: no focal, no depth) or a 3-D scene. auto: the backend's degeneracy test, "
+        "one homography or apap, whichever best predicts a held-back band of the reference (apap by a 0.1 dB "
+        "margin); band: the best of every candidate (also 3-D with each depth fill and with the focal at its "
+        "prior).",
         choices=MODEL_CHOICES)
     depth_fill: str = _option(
         DEFAULT_DEPTH_FILL_CHOICE, "3-D model: extend depth where one view sees the scene by continuing local "
