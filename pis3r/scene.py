@@ -112,7 +112,7 @@ class Scene:
         pairs = sorted(zip((order[k] for k in self.indices), self.views), key=lambda pair: pair[0])
         return replace(
             self,
-            views=tuple(view if view.warp is None else replace(view, warp=view.warp.with_onto(order[view.warp.onto]))
+            views=tuple(view if view.warp is None else replace(view, warp=replace(view.warp, onto=order[view.warp.onto]))
                         for _, view in pairs),
             indices=tuple(index for index, _ in pairs),
             dropped=tuple(replace(d, index=order[d.index]) for d in self.dropped),

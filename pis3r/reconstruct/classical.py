@@ -204,7 +204,7 @@ class ClassicalReconstructor:
         if self.options.model != "apap":
             return view
         inliers = pair.inliers
-        threshold = LOCAL_WARP_THRESHOLD_PX * float(np.hypot(photo.width, photo.height) / np.hypot(1024, 768))
+        threshold = LOCAL_WARP_THRESHOLD_PX * geometry.pixel_scale(photo.width, photo.height)
         _, keep = fit_homography(inliers.pts_b, inliers.pts_a, threshold, MATCH_FILTER)
         if keep.sum() < MIN_MATCHES:
             raise ReconstructionError(f"{photo.name}: too few matches for local homographies")

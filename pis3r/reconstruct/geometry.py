@@ -25,8 +25,8 @@ FOCAL_RANGE = (0.3, 5.0)
 FOCAL_PRIOR_WEIGHT = 3.0
 
 
-def _pixel_scale(width: int, height: int) -> float:
-    """Thresholds below are in pixels of a 1024x768 image; this rescales them."""
+def pixel_scale(width: int, height: int) -> float:
+    """The factor that takes a threshold in pixels of a 1024x768 image to a ``width x height`` one."""
     return float(np.hypot(width, height) / np.hypot(1024, 768))
 
 
@@ -34,14 +34,14 @@ def fundamental(matches: Matches, width: int, height: int) -> tuple[np.ndarray |
     """MAGSAC++ fundamental matrix ``(3, 3)`` (or None) and its inlier mask ``(N,)``."""
     if len(matches) < 8:
         return None, np.zeros(len(matches), bool)
-    return fit_fundamental(matches.pts_a, matches.pts_b, 1.0 * _pixel_scale(width, height), RECONSTRUCTION)
+    return fit_fundamental(matches.pts_a, matches.pts_b, 1.0 * pixel_scale(width, height), RECONSTRUCTION)
 
 
 def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
     """MAGSAC++ homography a -> b ``(3, 3)`` (or None) and its inlier mask."""
     if len(matches) < 4:
         return None, np.zeros(len(matches), bool)
-    return fit_homography(matches.pts_a, matches.pts_b, 2.0 * _pixel_scale(width, height), RECONSTRUCTION)
+    return fit_homography(matches.pts_a, matches.pts_b, 2.0 * pixel_scale(width, height), RECONSTRUCTION)
 
 
 def focal_candidates(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, int],
@@ -56,7 +56,7 @@ def focal_candidates(matches: Matches, size_a: tuple[int, int], size_b: tuple[in
     """
     scan = np.geomspace(0.4, 2.5, 13) * prior
     counts = []
-    threshold_px = 1.0 * _pixel_scale(*size_a)
+    threshold_px = 1.0 * pixel_scale(*size_a)
     for f in scan:
         na = _normalised(intrinsics(f, *size_a), matches.pts_a)
         nb = _normalised(intrinsics(ratio * f, *size_b), matches.pts_b)
@@ -76,7 +76,7 @@ def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: in
     Returns ``(R, t, inliers)`` or ``None``.
     """
     na, nb = _normalised(K_a, matches.pts_a), _normalised(K_b, matches.pts_b)
-    threshold = 1.0 * _pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
+    threshold = 1.0 * pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
     E, inliers = fit_essential(na, nb, threshold, RECONSTRUCTION)
     if E is None:
         return None

@@ -110,9 +110,6 @@ class LocalWarp:
         mapped[homogeneous[:, 2] <= 0] = np.nan
         return mapped.astype(np.float32)
 
-    def with_onto(self, onto: int) -> "LocalWarp":
-        return LocalWarp(self.homographies, self.cell, onto)
-
 
 def fit_local_warp(pts_view: np.ndarray, pts_onto: np.ndarray, width: int, height: int, onto: int,
                    onto_diagonal: float) -> LocalWarp:

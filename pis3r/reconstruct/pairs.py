@@ -175,8 +175,7 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     planar = model == "homography" or (
         model == "auto" and (parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION))
     why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
-    relations = tuple((h.ratio, h.focal_a, h.prior_a) for h in hypotheses)
-    rotation = remember(("rotation", matches_key, relations, known_source, focal_is_final),
+    rotation = remember(("rotation", matches_key, tuple(hypotheses), known_source, focal_is_final),
                         lambda: _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
                                           focal_is_final)) if planar else None
     if rotation is not None:
@@ -220,7 +219,7 @@ def _rotation(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, 
     when neither is there. A known focal is kept when a rotation with it fits; when only the
     homography's does (EXIF of a cropped or converted photo), that one is used, with a warning."""
     homography_error = float(np.median(_transfer_error(H, h_inliers)))
-    tolerance = ROTATION_FIT_FACTOR * homography_error + ROTATION_FIT_SLACK_PX * np.hypot(*size_a) / np.hypot(1024, 768)
+    tolerance = ROTATION_FIT_FACTOR * homography_error + ROTATION_FIT_SLACK_PX * geometry.pixel_scale(*size_a)
     fits = []  # (error, kind, hypothesis, fit)
     for hypothesis in hypotheses:
         calibrated = rotation_focal(H, size_a, size_b, hypothesis.ratio)
