@@ -38,12 +38,16 @@ class Photo:
 
     ``pixels``: ``(H, W, 3)`` float32 RGB in ``[0, 1]``, EXIF orientation applied.
     ``focal_px``: focal length in pixels of ``pixels`` derived from EXIF, or ``None``.
+    ``scale``: size of ``pixels`` relative to the photo as it was read (1 for that photo; a
+    working copy's resize factor, :func:`downscaled`), so that a threshold set in the input
+    photo's pixels means the same on a copy.
     """
 
     pixels: np.ndarray
     name: str
     focal_px: float | None = None
     focal_evidence: str = ""
+    scale: float = 1.0
 
     @property
     def height(self) -> int:
@@ -55,13 +59,15 @@ class Photo:
 
 
 def downscaled(photo: Photo, factor: float) -> Photo:
-    """``photo`` resized by ``factor`` < 1 (area averaging); its EXIF focal scales with it."""
+    """``photo`` resized by ``factor`` < 1 (area averaging); its EXIF focal and its ``scale``
+    scale with it."""
     size = (int(photo.width * factor), int(photo.height * factor))
     return Photo(
         cv2.resize(photo.pixels, size, interpolation=cv2.INTER_AREA),
         photo.name,
         photo.focal_px * factor if photo.focal_px else None,
         photo.focal_evidence,
+        photo.scale * size[0] / photo.width,
     )
 
 # A float image whose maximum is above this is on the 0..255 scale: resampling a [0, 1]

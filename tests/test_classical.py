@@ -144,3 +144,19 @@ def test_a_view_that_overlaps_no_registered_view_is_dropped_with_the_reason():
     assert result.scene.indices == (0, 1)
     (dropped,) = result.report["dropped"]
     assert dropped["index"] == 2 and "nor does it overlap any other registered image" in dropped["reason"]
+
+
+def test_local_warp_threshold_is_in_pixels_of_the_photo_as_read():
+    """APAP's loose 10 px on a photo as read up to 1024 x 768, the same share of a larger
+    one, and what either means on a working copy (the held-back band test's)."""
+    from pis3r.io import downscaled
+    from pis3r.reconstruct.classical import LOCAL_WARP_THRESHOLD_PX, local_warp_threshold
+
+    small = Photo(np.zeros((375, 500, 3), np.float32), "small")
+    large = Photo(np.zeros((1536, 2048, 3), np.float32), "large")
+    assert local_warp_threshold(small) == pytest.approx(LOCAL_WARP_THRESHOLD_PX)
+    assert local_warp_threshold(large) == pytest.approx(2 * LOCAL_WARP_THRESHOLD_PX)
+    half = downscaled(small, 0.5)
+    assert half.scale == pytest.approx(0.5)
+    assert local_warp_threshold(half) == pytest.approx(0.5 * LOCAL_WARP_THRESHOLD_PX)
+    assert local_warp_threshold(downscaled(large, 0.25)) == pytest.approx(0.5 * LOCAL_WARP_THRESHOLD_PX)

@@ -15,7 +15,7 @@ from pis3r.eval import metrics
 from pis3r.eval.apap import apap_stitch
 from pis3r.eval.cases import crop_case, discover_cases, load_case, parallax_classes_from_sources
 from pis3r.eval.geometry import pose_error, score_geometry
-from pis3r.eval.registration import exact_homography, place, register_canvas
+from pis3r.eval.registration import exact_homography, place, register_canvas, translation
 from pis3r.eval.scoring import lpips_map, score_exact, score_failure, score_registered
 from pis3r.eval.report import TABLE3, mean_of
 from tests.conftest import REAL, needs_real_data
@@ -203,3 +203,21 @@ def test_real_dataset_cases_and_calibration():
     canvas_a = (full.gt, np.ones(full.gt.shape[:2], bool), (0, 0))
     canvas_b = (full.target, np.ones(full.target.shape[:2], bool), (0, 0))
     assert score_geometry(canvas_a, canvas_b, full)["sampson_median"] < 0.5
+
+
+def test_a_whole_pixel_shift_places_the_canvas_exactly():
+    case, _ = rotation_pair()
+    height, width = case.gt.shape[:2]
+    rng = np.random.default_rng(0)
+    canvas = rng.random((height + 4, width - 6, 3)).astype(np.float32)
+    filled = rng.random(canvas.shape[:2]) > 0.2
+    placed = place(canvas, filled, translation(-3, 5), case)
+    assert np.array_equal(placed.filled[5:, :width - 9], filled[:height - 5, 3:])
+    assert not placed.filled[:5].any() and not placed.filled[:, width - 9:].any()
+    kept = filled[:height - 5, 3:]
+    assert np.array_equal(placed.image[5:, :width - 9][kept], canvas[:height - 5, 3:][kept])
+    # The bilinear path (a shift off whole pixels) agrees up to its blur.
+    whole = np.ones_like(filled)
+    exact = place(canvas, whole, translation(-3, 5), case).image
+    bilinear = place(canvas, whole, translation(-3 + 1e-3, 5), case).image
+    assert np.allclose(bilinear[6:-1, 1:width - 10], exact[6:-1, 1:width - 10], atol=0.01)

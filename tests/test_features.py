@@ -161,7 +161,8 @@ def test_the_way_back_from_one_product_is_the_second_products():
     mutual = full_idx[nearest, 0] == np.arange(len(desc_a))
     columns = nearest[mutual]
     np.testing.assert_array_equal(idx[columns, 0], full_idx[columns, 0])
-    np.testing.assert_allclose(dist[columns], full_dist[columns], atol=1e-6)
+    # Two float32 products agree to their rounding (BLAS sums each in its own order).
+    np.testing.assert_allclose(dist[columns], full_dist[columns], atol=1e-5)
     assert not np.isin(np.flatnonzero(idx[:, 0] >= 0), columns, invert=True).any()
     points_a, points_b = rng.uniform(0, 100, (len(desc_a), 2)), rng.uniform(0, 100, (len(desc_b), 2))
     found = match(Features(points_a, desc_a), Features(points_b, desc_b))

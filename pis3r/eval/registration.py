@@ -68,8 +68,13 @@ class Registration:
 def place(image: np.ndarray, filled: np.ndarray, homography: np.ndarray, case: EvalCase) -> Placed:
     """Warp a canvas ``(h, w, 3)`` with its ``filled`` ``(h, w)`` bool onto the GT grid through
     ``homography`` (canvas px -> GT px). Bilinear; a GT pixel is filled only when (almost) all
-    of its interpolation weight comes from filled canvas pixels."""
+    of its interpolation weight comes from filled canvas pixels. A shift by whole pixels (the
+    exact placement) copies the pixels: OpenCV's fixed-point bilinear weights would blur them
+    by a 32nd of a pixel where the mapped coordinate rounds below the integer."""
     height, width = case.gt.shape[:2]
+    shift = np.rint(homography[:2, 2])
+    if np.array_equal(homography, translation(*shift)):
+        return _shifted(image, filled, int(shift[0]), int(shift[1]), width, height)
     flags = cv2.INTER_LINEAR
     warped = cv2.warpPerspective(
         np.where(filled[..., None], image, 0).astype(np.float32), homography, (width, height), flags=flags
@@ -77,6 +82,20 @@ def place(image: np.ndarray, filled: np.ndarray, homography: np.ndarray, case: E
     weight = cv2.warpPerspective(filled.astype(np.float32), homography, (width, height), flags=flags)
     valid = weight >= VALID_WEIGHT
     return Placed(np.where(valid[..., None], np.clip(warped, 0.0, 1.0), 0.0).astype(np.float32), valid)
+
+
+def _shifted(image: np.ndarray, filled: np.ndarray, dx: int, dy: int, width: int, height: int) -> Placed:
+    """:func:`place` for a shift by whole pixels ``(dx, dy)``: canvas pixel ``(x, y)`` lands on
+    GT pixel ``(x + dx, y + dy)`` of a ``width x height`` grid."""
+    placed = np.zeros((height, width, 3), np.float32)
+    valid = np.zeros((height, width), bool)
+    x0, y0 = max(0, dx), max(0, dy)
+    x1, y1 = min(width, image.shape[1] + dx), min(height, image.shape[0] + dy)
+    if x1 > x0 and y1 > y0:
+        window = filled[y0 - dy:y1 - dy, x0 - dx:x1 - dx]
+        valid[y0:y1, x0:x1] = window
+        placed[y0:y1, x0:x1] = np.where(window[..., None], np.clip(image[y0 - dy:y1 - dy, x0 - dx:x1 - dx], 0, 1), 0)
+    return Placed(placed, valid)
 
 
 def translation(dx: float, dy: float) -> np.ndarray:

