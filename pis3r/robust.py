@@ -5,6 +5,9 @@ none, and an ``(N,)`` bool inlier mask (all False without a model). Points go to
 the caller gives them (dtype included), so a fit here is the very OpenCV call it replaces.
 The random sampling follows ``cv2.setRNGSeed``.
 
+:func:`fit_least_quantile_homography` is the exception, a deterministic numpy search for the
+homography a share of the matches fits best (the parallax level's measure).
+
 (``pis3r.synth`` fits a plain least-squares homography to exact correspondences with
 ``cv2.findHomography(..., 0)``: not robust, so not here.)
 """
@@ -15,6 +18,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from pis3r.dlt import dlt_blocks, hartley_normalisation, smallest_eigenvectors
 
 
 @dataclass(frozen=True)
@@ -85,3 +90,81 @@ def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold: float,
     if E is not None and E.shape != (3, 3):
         E = None
     return E, _inliers(mask, E, len(rays_a))
+
+
+# The least-quantile search: minimal samples drawn, of which the best few are refined.
+LEAST_QUANTILE_SAMPLES = 1000
+LEAST_QUANTILE_STARTS = 10
+LEAST_QUANTILE_REFITS = 20
+# Residuals of this many samples at a time (samples x matches floats each).
+_SAMPLE_CHUNK = 100
+
+
+def transfer_residuals(H: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """``(M, N)`` distances in px between ``H_m pts_a`` and ``pts_b`` for homographies ``H``
+    ``(M, 3, 3)`` and pixels ``(N, 2)``, ``(N, 2)``; infinite where a point maps to infinity
+    or behind (a non-positive third coordinate)."""
+    mapped = np.einsum("mij,nj->mni", H, np.hstack([pts_a, np.ones((len(pts_a), 1))]))
+    w = mapped[..., 2]
+    front = w > 1e-12
+    xy = mapped[..., :2] / np.where(front, w, 1.0)[..., None]
+    distance = np.hypot(xy[..., 0] - pts_b[:, 0], xy[..., 1] - pts_b[:, 1])
+    distance[~front] = np.inf
+    return distance
+
+
+def fit_least_quantile_homography(pts_a: np.ndarray, pts_b: np.ndarray, quantile: float,
+                                  seed: int = 0) -> tuple[np.ndarray | None, float]:
+    """The homography ``(3, 3)`` taking pixels ``pts_a`` ``(N, 2)`` to ``pts_b`` ``(N, 2)``
+    whose ``quantile`` (0-1) transfer residual is smallest, and that residual (px); ``(None,
+    inf)`` for fewer than 5 matches.
+
+    Least quantile of squares: ``LEAST_QUANTILE_SAMPLES`` exact fits to four matches (a fixed
+    draw from ``seed``), then each of the ``LEAST_QUANTILE_STARTS`` best is refitted by DLT to
+    the matches within its quantile for as long as the quantile falls. Unlike an inlier count
+    at a threshold (MAGSAC), the quantile it minimises moves little when a few matches come
+    or go: with two planes in view, a threshold fit locks onto either, a quantile fit
+    balances them the same way each time."""
+    n = len(pts_a)
+    if n < 5:
+        return None, float("inf")
+    rank = min(n - 1, int(np.ceil(quantile * n)) - 1)
+    T_a, T_b = hartley_normalisation(pts_a), hartley_normalisation(pts_b)
+    blocks = dlt_blocks(pts_a @ T_a[:2, :2].T + T_a[:2, 2], pts_b @ T_b[:2, :2].T + T_b[:2, 2])
+    to_pixels = np.linalg.inv(T_b)
+
+    def homographies(block_sums: np.ndarray) -> np.ndarray:
+        H = to_pixels @ smallest_eigenvectors(block_sums).reshape(-1, 3, 3) @ T_a
+        # An eigenvector's sign is arbitrary: the one that puts most matches in front.
+        w = np.einsum("mj,nj->mn", H[:, 2], np.hstack([pts_a, np.ones((n, 1))]))
+        return H * np.where(np.median(w, axis=1) < 0, -1.0, 1.0)[:, None, None]
+
+    def quantiles(H: np.ndarray) -> np.ndarray:
+        return np.partition(transfer_residuals(H, pts_a, pts_b), rank, axis=1)[:, rank]
+
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, n, (LEAST_QUANTILE_SAMPLES, 4))
+    while (repeated := _has_repeats(draws)).any():
+        draws[repeated] = rng.integers(0, n, (int(repeated.sum()), 4))
+    candidates = homographies(blocks[draws].sum(axis=1))
+    scores = np.concatenate([quantiles(candidates[i:i + _SAMPLE_CHUNK])
+                             for i in range(0, len(candidates), _SAMPLE_CHUNK)])
+    best_H, best_q = None, float("inf")
+    for start in np.argsort(scores, kind="stable")[:LEAST_QUANTILE_STARTS]:
+        H, q = candidates[start], scores[start]
+        for _ in range(LEAST_QUANTILE_REFITS):
+            near = transfer_residuals(H[None], pts_a, pts_b)[0] <= q
+            refit = homographies(blocks[near].sum(axis=0)[None])[0]
+            refit_q = quantiles(refit[None])[0]
+            if not refit_q < q:
+                break
+            H, q = refit, refit_q
+        if q < best_q:
+            best_H, best_q = H / max(abs(H[2, 2]), 1e-12), float(q)
+    return best_H, best_q
+
+
+def _has_repeats(draws: np.ndarray) -> np.ndarray:
+    """``(S,)`` True where a row of ``draws`` ``(S, k)`` names a match twice."""
+    ordered = np.sort(draws, axis=1)
+    return (ordered[:, 1:] == ordered[:, :-1]).any(axis=1)

@@ -13,7 +13,13 @@ from skimage import data as skdata
 from pis3r.camera import Camera, intrinsics
 from pis3r.eval import metrics
 from pis3r.eval.apap import apap_stitch
-from pis3r.eval.cases import crop_case, discover_cases, load_case, parallax_classes_from_sources
+from pis3r.eval.cases import (
+    crop_case,
+    discover_cases,
+    load_case,
+    parallax_classes_from_sources,
+    parallax_labels_from_sources,
+)
 from pis3r.eval.geometry import pose_error, score_geometry
 from pis3r.eval.registration import exact_homography, place, register_canvas, translation
 from pis3r.eval.scoring import lpips_map, score_exact, score_failure, score_registered
@@ -188,6 +194,7 @@ def test_parallax_classes_from_sources_table(tmp_path):
         "| c | x | very large | - |\n| d | x | planar | - |\n\n| other | table |\n|---|---|\n| e | f |\n"
     )
     assert parallax_classes_from_sources(sources) == {"a": "rotation", "b": "slight", "c": "large", "d": "unknown"}
+    assert parallax_labels_from_sources(sources)["b"] == "slight-to-moderate (borderline)"
 
 
 @pytest.mark.slow

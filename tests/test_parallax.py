@@ -2,6 +2,7 @@
 
 import pytest
 
+from pis3r.eval.cases import class_from_text, parallax_labels_from_sources
 from pis3r.io import read_image
 from pis3r.parallax import ParallaxEstimate, classify_level, estimate_parallax
 from pis3r.synth.cases import make_case
@@ -16,15 +17,6 @@ def test_level_grows_with_parallax():
     assert classify_level(levels["large"]) == "large"
 
 
-def _sources_classes():
-    classes = {}
-    for line in (REAL / "SOURCES.md").read_text().splitlines():
-        cells = [c.strip() for c in line.split("|")]
-        if len(cells) > 7 and list((REAL / cells[1]).glob("ref.*")):
-            classes[cells[1]] = cells[6]
-    return classes
-
-
 def test_estimate_as_json_names_its_class_parallax_class():
     estimate = ParallaxEstimate("slight", 0.5, 0.7, 1.0, 2.0, 100, 90)
     assert list(estimate.to_dict())[:3] == ["parallax_class", "label", "level"]
@@ -34,13 +26,16 @@ def test_estimate_as_json_names_its_class_parallax_class():
 @pytest.mark.slow
 @needs_real_data
 def test_real_pairs_agree_with_their_documented_class():
-    """Clear-cut pairs only: SOURCES.md marks borderline calls, which may go either way."""
+    """Clear-cut pairs of the uncalibrated table only: SOURCES.md marks borderline calls,
+    which may go either way."""
     agree, total = 0, 0
-    for name, label in _sources_classes().items():
+    for name, label in parallax_labels_from_sources(REAL / "SOURCES.md").items():
         if "borderline" in label or "planar" in label:
             continue
-        expected = "rotation" if label.startswith("pure rotation") else "slight" if label.startswith("slight") else "large"
+        expected = class_from_text(label)
         pair = REAL / name
+        if not list(pair.glob("ref.*")):
+            continue
         est = estimate_parallax(read_image(next(pair.glob("ref.*"))).pixels, read_image(next(pair.glob("tgt.*"))).pixels)
         total += 1
         agree += est.parallax_class == expected

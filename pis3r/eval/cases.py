@@ -151,7 +151,13 @@ def parallax_classes_from_sources(sources_md: str | Path) -> dict[str, str]:
     Cells are free text ("slight-to-moderate (...)"); their leading words decide:
     "pure rotation..." -> ``rotation``, "slight..." -> ``slight``, "very large..." -> ``large``.
     """
-    classes: dict[str, str] = {}
+    return {folder: class_from_text(text) for folder, text in parallax_labels_from_sources(sources_md).items()}
+
+
+def parallax_labels_from_sources(sources_md: str | Path) -> dict[str, str]:
+    """``{folder: text}``: the "parallax class" cell of each row of every table in a SOURCES.md
+    that has that column (tables without it, such as calibrated scenes', are skipped)."""
+    labels: dict[str, str] = {}
     column = None
     for line in Path(sources_md).read_text(encoding="utf-8").splitlines():
         if not line.startswith("|"):
@@ -163,8 +169,8 @@ def parallax_classes_from_sources(sources_md: str | Path) -> dict[str, str]:
             continue
         if column < 0 or column >= len(cells) or set(cells[0]) <= {"-", ":"}:
             continue
-        classes[cells[0]] = class_from_text(cells[column])
-    return classes
+        labels[cells[0]] = cells[column]
+    return labels
 
 
 def class_from_text(text: str) -> str:
