@@ -139,22 +139,24 @@ def test_pose_refinement_jacobian_matches_finite_differences():
 
 
 def test_models_of_one_pair_share_its_essential_fits(monkeypatch):
-    """The band test estimates one pair under several models: matching and the costly
-    essential-matrix fits run once for all of them, and the pose is the one each computes alone."""
+    """The band test estimates one pair under several models: matching, the parallax level
+    and the costly essential-matrix fits run once for all of them, and the pose is the one
+    each computes alone."""
     import pis3r.reconstruct.classical as classical
     import pis3r.reconstruct.pairs as pairs
 
     a, b, _, _ = facade_pair([-1.5, 0.2, 1.5], -12.0)
-    calls, matchings = [], []
-    best_essential, matching = pairs._best_essential, classical.consistent_matches
+    calls, matchings, levels = [], [], []
+    best_essential, matching, level = pairs._best_essential, classical.consistent_matches, pairs.parallax_from_matches
     monkeypatch.setattr(pairs, "_best_essential", lambda *args: calls.append(1) or best_essential(*args))
     monkeypatch.setattr(classical, "consistent_matches", lambda *args: matchings.append(1) or matching(*args))
+    monkeypatch.setattr(pairs, "parallax_from_matches", lambda *args: levels.append(1) or level(*args))
     alone = ClassicalReconstructor(ReconstructOptions(model="3d")).cameras(a, b)
-    assert len(calls) == 1 and len(matchings) == 1
+    assert len(calls) == 1 and len(matchings) == 1 and len(levels) == 1
     memo = {}
     shared = [ClassicalReconstructor(ReconstructOptions(model=model), memo).cameras(a, b)
               for model in ("3d", "homography", "3d")]
-    assert len(calls) == 2 and len(matchings) == 2
+    assert len(calls) == 2 and len(matchings) == 2 and len(levels) == 2
     np.testing.assert_allclose(shared[0].R, alone.R, atol=1e-9)
     np.testing.assert_allclose(shared[2].R, alone.R, atol=1e-9)
     assert shared[1].model == "homography"

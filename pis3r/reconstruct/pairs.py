@@ -146,18 +146,21 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
     an unknown focal of a pair with a baseline is ``calibrated`` from the matches or held at
     the ``prior`` (:data:`pis3r.reconstruct.options.FOCAL_RULES`). ``remember(key, compute)``:
     a memo shared by estimates of the same pair under other models (the held-back band test),
-    so the homography, rotation and essential-matrix fits run once: every random draw of an estimate is
-    then its first caller's, as it would have been in each caller (each starts from one seed)."""
+    so the parallax level and the homography, rotation and essential-matrix fits run once:
+    every random draw of an estimate is then its first caller's, as it would have been in
+    each caller (each starts from one seed)."""
     size_a, size_b = (ref.width, ref.height), (other.width, other.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
         raise NotEnoughOverlapError(
             f"these images do not overlap enough to stitch: {int(f_inl.sum())} consistent matches")
-    parallax = parallax_from_matches(matches, float(np.hypot(*size_a)))
     inliers = matches.subset(f_inl)
     remember = remember or (lambda key, compute: compute())
     # Keyed by value: the same matches give the same fits, whichever model asks.
     matches_key = hashlib.sha1(inliers.pts_a.tobytes() + inliers.pts_b.tobytes()).hexdigest()
+    all_key = hashlib.sha1(matches.pts_a.tobytes() + matches.pts_b.tobytes()).hexdigest()
+    parallax = remember(("parallax", all_key, size_a),
+                        lambda: parallax_from_matches(matches, float(np.hypot(*size_a))))
     H, h_inl = remember(("homography", matches_key), lambda: geometry.homography(inliers, *size_a))
     if H is None:
         raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
