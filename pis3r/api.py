@@ -196,6 +196,7 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         },
         "dropped_points": canvas.dropped_points,
         "surfaces": [surfaces.to_dict() for surfaces in canvas.surfaces],
+        "exposures": [{"view": view, **exposure.to_dict()} for view, exposure in canvas.exposures.items()],
         "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in scene.views],
         "dropped": [dropped.to_dict() for dropped in scene.dropped],
         "warnings": list(warnings),

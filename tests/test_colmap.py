@@ -72,6 +72,9 @@ def test_cli_writes_colmap_and_a_strictly_valid_ply(small_pair, tmp_path):
     assert len(faces) > 1000 and faces.max() < len(vertices) and np.isfinite(vertices).all()
     report = json.loads((out / "report.json").read_text())
     assert [s["view"] for s in report["surfaces"]] and all(s["rendered"] > 0 for s in report["surfaces"])
+    # Every rendered view says how its colours were brought to the reference's.
+    assert [e["view"] for e in report["exposures"]] == [s["view"] for s in report["surfaces"]]
+    assert all(0.5 <= g <= 2.0 for e in report["exposures"] for g in e["gain"])
 
 
 def read_ply_strict(path):

@@ -3,6 +3,7 @@ import functools
 import gc
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,8 @@ import pytest
 from pis3r.camera import Camera, intrinsics
 from pis3r.mesh import encode_mesh_ply, scene_mesh, view_mesh
 from pis3r.scene import Scene, View
-from pis3r.stitch import raster, render
+from pis3r.stitch import exposure, raster, render
+from pis3r.stitch.exposure import corner_t2, squared_tangents
 from pis3r.stitch.render import render_to_canvas
 from tests.analytic import planes_scene, render as ray_trace, two_view_cameras
 
@@ -74,6 +76,41 @@ def test_exact_depth_reproduces_the_true_wide_view():
     assert agree.sum() > 0.99 * covered.sum()
     mse = np.mean((canvas.image[agree] - wide_img[agree]) ** 2)
     assert -10 * np.log10(mse) > 35
+
+
+def _vignetted(image, camera, exposure, widest):
+    """``image`` as an exposure ``exposure`` and a lens ``1 - t^2 / 2`` record it, the lens
+    held at the squared tangent ``widest`` beyond it."""
+    ys, xs = np.mgrid[0:camera.height, 0:camera.width]
+    t2 = np.minimum(squared_tangents(np.stack([xs, ys], -1).astype(np.float64), camera.K), widest)
+    return np.clip(image * exposure * (1 - t2 / 2)[..., None], 0, 1).astype(np.float32)
+
+
+def _extension_psnr(canvas, truth, reference):
+    outside = canvas.occupied & _outside_reference(canvas, reference)
+    return -10 * np.log10(np.mean((canvas.image[outside] - truth[outside]) ** 2))
+
+
+def test_the_extension_continues_the_reference_s_exposure_and_vignetting(monkeypatch):
+    planes, exact = _planes()
+    ref = exact.views[0].camera
+    widest = corner_t2(ref.K, ref.width, ref.height)
+    # The target shot 20 % darker, both through a lens darkening to 0.75 in the corners.
+    scene = Scene([replace(v, image=_vignetted(v.image, v.camera, gain, widest))
+                   for v, gain in zip(exact.views, (1.0, 0.8))])
+    canvas = render_to_canvas(scene)
+    wide, _ = ray_trace(planes, canvas.camera)
+    # What the reference camera would have recorded there: its exposure and its falloff, held
+    # beyond the widest angle the photos saw (a polynomial is not extrapolated).
+    truth = _vignetted(wide, canvas.camera, 1.0, widest)
+    modelled = _extension_psnr(canvas, truth, ref)
+    assert modelled > 40
+    fitted = canvas.exposures[1]
+    np.testing.assert_allclose(fitted.gain, 1 / 0.8, rtol=0.01)
+    np.testing.assert_allclose(fitted.falloff, (-0.5, 0.0), atol=0.02)
+    # With a gain alone (the falloff never fitted) the extension is measurably off.
+    monkeypatch.setattr(exposure, "MIN_RADIUS_SPREAD", np.inf)
+    assert _extension_psnr(render_to_canvas(scene), truth, ref) < modelled - 10
 
 
 def test_reference_pixels_are_copied_verbatim_and_offset_is_exported():

@@ -1,7 +1,7 @@
 """Blending across the border of the reference on a stitched canvas.
 
-A global gain per view (``render._exposure_gains``) leaves local exposure
-differences (vignetting, tone curves) that show as a frame around the reference.
+A gain per view and the lens falloff (:mod:`pis3r.stitch.exposure`) leave local exposure
+differences (tone curves, a falloff they miss) that show as a frame around the reference.
 Where the other views overlap the reference we know both colours, so a smooth
 per-pixel gain ``reference / others`` is measured there, carried outward from the
 nearest border pixel, and faded in by the distance to the reference:
@@ -23,13 +23,12 @@ import cv2
 import numpy as np
 
 from pis3r.errors import InputError
+from pis3r.stitch.exposure import GAIN_RANGE
 
 BLEND_METHODS = ("none", "feather", "multiband")
 DEFAULT_BLEND = "feather"
 # Width of the blend ramp as a fraction of the reference's shorter side.
 BAND_FRACTION = 0.1
-# Gains outside this range are not an exposure difference but a mismatch.
-GAIN_RANGE = (0.5, 2.0)
 # Pyramid depth is set by the band: the coarsest level's pixel is about the band's width.
 MAX_MULTIBAND_LEVELS = 6
 

@@ -41,6 +41,7 @@ from pis3r.camera import Camera
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
 from pis3r.scene import Scene
 from pis3r.stitch.blend import BAND_FRACTION
+from pis3r.stitch.exposure import MIN_SAMPLES, NEUTRAL, Exposure, corner_t2, fit_exposure, squared_tangents
 from pis3r.stitch.raster import Raster, Triangles, rasterise
 
 # Points closer than this (relative to the median scene depth) are numerically on
@@ -91,7 +92,9 @@ class Canvas:
     reference (``h x w``) is pasted, and ``under_valid`` ``(h, w)`` bool where they put
     anything (the overlap that blending across the reference border works from);
     ``surfaces``: per other view, which of its triangles entered the canvas
-    (:class:`SurfaceCounts`; ``[s.to_dict() for s in surfaces]`` for a report).
+    (:class:`SurfaceCounts`; ``[s.to_dict() for s in surfaces]`` for a report);
+    ``exposures``: view index to the :class:`~pis3r.stitch.exposure.Exposure` its colours
+    were brought to the reference's by (gain and lens falloff).
     """
 
     image: np.ndarray
@@ -103,6 +106,7 @@ class Canvas:
     under_reference: np.ndarray | None = None
     under_valid: np.ndarray | None = None
     surfaces: list[SurfaceCounts] = field(default_factory=list)
+    exposures: dict[int, Exposure] = field(default_factory=dict)
 
     @property
     def occupied(self) -> np.ndarray:
@@ -230,35 +234,42 @@ def _sample_points(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
 
 
-def _exposure_gains(scene: Scene, raster: Raster, indices: list[int], window, ref_image: np.ndarray) -> np.ndarray:
-    """``(len(indices), 3)`` float32: per layer, the robust per-channel gain that maps its
-    view's colours onto the reference where its surface lands inside it (``window``: the
-    reference's slices in the canvas), so a different exposure does not show as a frame."""
-    # A robust median needs far fewer samples than the reference has pixels: a regular
-    # grid of about GAIN_SAMPLES of them.
+def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_camera: Camera,
+               ref_image: np.ndarray) -> list[Exposure]:
+    """Per layer, the :class:`~pis3r.stitch.exposure.Exposure` (gain per channel and the lens's
+    falloff) that maps its view's colours onto the reference where its surface lands inside
+    it (``window``: the reference's slices in the canvas), so neither a different exposure
+    nor vignetting shows as a frame around the reference or a wrong brightness beyond it."""
+    # A robust fit needs far fewer samples than the reference has pixels: a regular grid of
+    # about GAIN_SAMPLES of them.
     rows, cols = window
     stride = max(1, int((ref_image.shape[0] * ref_image.shape[1] / GAIN_SAMPLES) ** 0.5))
     grid = (slice(rows.start, rows.stop, stride), slice(cols.start, cols.stop, stride))
     layer, uv = raster.layer[grid].ravel(), raster.uv[grid].reshape(-1, 2)
     reference = ref_image[::stride, ::stride].reshape(-1, 3)
-    gains = np.ones((len(indices), 3), np.float32)
+    ys, xs = np.mgrid[0:ref_image.shape[0]:stride, 0:ref_image.shape[1]:stride]
+    t2_ref = squared_tangents(np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64), ref_camera.K)
+    exposures = []
     for k, index in enumerate(indices):
         chosen = np.flatnonzero(layer == k)
-        if len(chosen) < 100:
+        if len(chosen) < MIN_SAMPLES:
+            exposures.append(NEUTRAL)
             continue
-        ours = _sample_points(scene.views[index].image, uv[chosen])
-        theirs = reference[chosen]
-        # Saturated or black pixels carry no information about the gain.
-        usable = ((ours > 0.02) & (ours < 0.98) & (theirs > 0.02) & (theirs < 0.98)).all(axis=1)
-        if int(usable.sum()) >= 100:
-            gains[k] = np.clip(np.median(theirs[usable] / ours[usable], axis=0), 0.5, 2.0)
-    return gains
+        camera = scene.views[index].camera
+        t2_max = max(corner_t2(ref_camera.K, ref_camera.width, ref_camera.height),
+                     corner_t2(camera.K, camera.width, camera.height))
+        exposures.append(fit_exposure(reference[chosen], _sample_points(scene.views[index].image, uv[chosen]),
+                                      t2_ref[chosen], squared_tangents(uv[chosen].astype(np.float64), camera.K),
+                                      t2_max))
+    return exposures
 
 
-def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.ndarray) -> np.ndarray:
+def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures: list[Exposure],
+                    canvas_K: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` float32: at every pixel whose ``raster.layer`` is ``k``, view ``indices[k]``'s
     full-resolution image sampled at ``raster.uv`` (``cv2.remap``, ``COLOUR_INTERPOLATION``)
-    and scaled by ``gains[k]`` ``(3,)``; 0 where no layer."""
+    and brought to the reference camera by ``exposures[k]`` (``canvas_K``: the canvas's
+    intrinsics); 0 where no layer."""
     image = np.zeros(raster.layer.shape + (3,), np.float32)
     for k, index in enumerate(indices):
         mine = raster.layer == k
@@ -269,8 +280,13 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], gains: np.
         uv = raster.uv[box]
         sampled = cv2.remap(scene.views[index].image, uv[..., 0], uv[..., 1], COLOUR_INTERPOLATION,
                             borderMode=cv2.BORDER_REPLICATE)
-        if (gains[k] != 1).any():
-            cv2.multiply(sampled, tuple(float(g) for g in gains[k]) + (0.0,), dst=sampled)
+        exposure = exposures[k]
+        if any(exposure.falloff):
+            ys, xs = np.mgrid[box]
+            t2_canvas = squared_tangents(np.stack([xs, ys], axis=-1).astype(np.float32), canvas_K)
+            sampled *= exposure.factor(t2_canvas, squared_tangents(uv, scene.views[index].camera.K))
+        elif (exposure.gain != 1).any():
+            cv2.multiply(sampled, tuple(float(g) for g in exposure.gain) + (0.0,), dst=sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
         np.clip(sampled, 0.0, 1.0, out=sampled)
         np.copyto(image[box], sampled, where=mine[box][..., None])
@@ -289,9 +305,10 @@ def render_to_canvas(
     grows to hold them (capped at ``max_canvas_scale`` times the reference's size).
 
     The reference's own pixels are copied verbatim into the canvas. With
-    ``match_exposure``, every other view's colours are scaled per channel by the gain
-    that matches them to the reference where they land inside it, so a different
-    exposure does not show as a frame around the reference. ``raster_backend``:
+    ``match_exposure``, every other view's colours are brought to the reference camera's
+    by a gain per channel and the lens's falloff fitted where they land inside it
+    (:mod:`pis3r.stitch.exposure`), so neither a different exposure nor vignetting shows
+    as a frame around the reference. ``raster_backend``:
     ``"auto"`` (OpenGL where an EGL context can be created, else numpy), ``"gl"`` or
     ``"numpy"`` (:mod:`pis3r.stitch.raster`). ``max_stretch``: see the module docstring
     (``np.inf`` keeps every surface). There is no device argument: OpenGL runs on
@@ -315,9 +332,10 @@ def render_to_canvas(
     indices = [s.view for s in surfaces]
     ox, oy = -x0, -y0
     window = (slice(oy, oy + ref.height), slice(ox, ox + ref.width))
-    gains = (_exposure_gains(scene, raster, indices, window, ref_view.image) if match_exposure
-             else np.ones((len(indices), 3), np.float32))
-    image = _sample_colours(scene, raster, indices, gains)
+    exposures = (_exposures(scene, raster, indices, window, ref, ref_view.image) if match_exposure
+                 else [NEUTRAL] * len(indices))
+    canvas_camera = ref.shifted(ox, oy, width, height)
+    image = _sample_colours(scene, raster, indices, exposures, canvas_camera.K)
     # Layer -1 (empty) picks the trailing -1.
     source = np.asarray(indices + [-1], np.int16)[raster.layer]
     depth = raster.z
@@ -329,10 +347,11 @@ def render_to_canvas(
         image=image,
         depth=depth,
         source=source,
-        camera=ref.shifted(ox, oy, width, height),
+        camera=canvas_camera,
         ref_offset=(ox, oy),
         dropped_points=dropped,
         under_reference=under_reference,
         under_valid=under_valid,
         surfaces=counts,
+        exposures=dict(zip(indices, exposures)),
     )

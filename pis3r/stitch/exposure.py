@@ -1,0 +1,132 @@
+"""Exposure and vignetting: how a view's colours become the reference camera's.
+
+A pixel records ``e * V(t) * L``: the scene's radiance ``L``, the shot's exposure ``e`` (per
+channel: white balance too) and the lens's falloff ``V`` at ``t``, the tangent of the angle
+between the ray and the optical axis (``|x - c| / f``: the same for any camera with that
+lens, whatever its pixel count). ``V(t) = 1 + a t^2 + b t^4`` (``V(0) = 1``), one lens for all
+views. A view's colour ``I_v`` at a canvas pixel ``x`` becomes the reference's
+``I_v * g * V(t_ref(x)) / V(t_v)`` with ``g = e_ref / e_v``: the colour the reference camera
+would have recorded there, falloff included, so the extension continues the reference's
+own vignetting instead of breaking it at the border.
+
+Where a view lands inside the reference both colours are known, and
+``log I_ref - log I_v = log g + log V(t_ref) - log V(t_v)`` is fitted to them (robust least
+squares). Without the falloff a single gain soaks it up: the overlap of two shifted photos
+lies near the centre of one and the edge of the other, so the gain measured there is off
+everywhere else (by 20 % on ``lpc-APAP-garden``). The falloff is kept only when the radii on
+the two sides differ enough to tell it from the gain (``MIN_RADIUS_SPREAD``) and it is a
+lens's: darker off axis, never brighter (the fit is constrained so), and above
+``MIN_FALLOFF`` at the widest angle; otherwise the gain alone, the median
+ratio, as before. Beyond the widest angle either photo saw, ``V`` is held at its value there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Gains outside this range are not an exposure difference but a mismatch.
+GAIN_RANGE = (0.5, 2.0)
+# Colours this close to black or white say nothing about a ratio (noise, clipping).
+USABLE_RANGE = (0.02, 0.98)
+# Samples needed for any fit.
+MIN_SAMPLES = 100
+# A falloff is fitted only when t^2 of the two sides of the samples differ by at least this
+# (standard deviation): otherwise it cannot be told from the gain.
+MIN_RADIUS_SPREAD = 0.01
+# The falloff of a lens at the widest angle: never below this.
+MIN_FALLOFF = 0.3
+# Six parameters are pinned down by a few thousand samples: the falloff is fitted on at most
+# this many (evenly spread over the overlap), the gain alone on all.
+FIT_SAMPLES = 4000
+# Robust loss scale on log ratios: about 5 % (misregistered or occluded samples are outliers).
+LOG_RATIO_SCALE = 0.05
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """A view's colours in the reference's terms: ``gain`` ``(3,)`` per channel, the lens's
+    ``falloff`` ``(a, b)`` (zero: none), valid up to ``t2_max`` (larger ``t^2`` are held there)."""
+
+    gain: np.ndarray
+    falloff: tuple[float, float] = (0.0, 0.0)
+    t2_max: float = 0.0
+
+    def vignetting(self, t2: np.ndarray) -> np.ndarray:
+        """``V`` at squared tangents ``t2`` (any shape), float32."""
+        a, b = self.falloff
+        t2 = np.minimum(t2, self.t2_max)
+        return (1.0 + a * t2 + b * t2 * t2).astype(np.float32)
+
+    def factor(self, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
+        """``(..., 3)`` float32 multipliers of view colours at pixels whose squared tangents are
+        ``t2_ref`` in the reference camera and ``t2_view`` in the view (same shape)."""
+        if not any(self.falloff):
+            return np.broadcast_to(self.gain.astype(np.float32), t2_ref.shape + (3,))
+        ratio = self.vignetting(t2_ref) / self.vignetting(t2_view)
+        return ratio[..., None] * self.gain.astype(np.float32)
+
+    def to_dict(self) -> dict:
+        return {"gain": [round(float(g), 4) for g in self.gain], "falloff": [round(c, 4) for c in self.falloff],
+                "t2_max": round(self.t2_max, 4)}
+
+
+NEUTRAL = Exposure(np.ones(3, np.float32))
+
+
+def squared_tangents(pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``(...)`` squared tangent of each pixel's ray off the optical axis, for ``pixels``
+    ``(..., 2)`` of a camera with intrinsics ``K`` ``(3, 3)``."""
+    dx = (pixels[..., 0] - K[0, 2]) / K[0, 0]
+    dy = (pixels[..., 1] - K[1, 2]) / K[1, 1]
+    return (dx * dx + dy * dy).astype(np.float32)
+
+
+def corner_t2(K: np.ndarray, width: int, height: int) -> float:
+    """The largest squared tangent of a ``width x height`` camera with intrinsics ``K``."""
+    corners = np.array([[0, 0], [width - 1, 0], [0, height - 1], [width - 1, height - 1]], np.float64)
+    return float(squared_tangents(corners, K).max())
+
+
+def fit_exposure(reference: np.ndarray, view: np.ndarray, t2_ref: np.ndarray, t2_view: np.ndarray,
+                 t2_max: float) -> Exposure:
+    """The :class:`Exposure` taking ``view`` colours ``(N, 3)`` to ``reference`` colours ``(N, 3)``
+    at samples with squared tangents ``t2_ref``, ``t2_view`` ``(N,)`` (module docstring);
+    ``t2_max``: the widest angle either camera sees. :data:`NEUTRAL` with too few samples."""
+    usable = ((view > USABLE_RANGE[0]) & (view < USABLE_RANGE[1])
+              & (reference > USABLE_RANGE[0]) & (reference < USABLE_RANGE[1])).all(axis=1)
+    if int(usable.sum()) < MIN_SAMPLES:
+        return NEUTRAL
+    log_ratio = np.log(reference[usable]) - np.log(view[usable])
+    median_gain = Exposure(np.exp(np.median(log_ratio, axis=0)).clip(*GAIN_RANGE).astype(np.float32))
+    s_ref, s_view = t2_ref[usable].astype(np.float64), t2_view[usable].astype(np.float64)
+    if float(np.std(s_ref - s_view)) < MIN_RADIUS_SPREAD:
+        return median_gain
+    step = max(1, len(log_ratio) // FIT_SAMPLES)
+    log_ratio, s_ref, s_view = log_ratio[::step], s_ref[::step], s_view[::step]
+    # scipy only where colours are fitted: importing pis3r stays fast (issue 12).
+    from scipy.optimize import least_squares
+
+    # A lens darkens monotonically off axis: V's slope in t^2, a + 2 b t^2, is <= 0 on
+    # [0, t2_max]. With a = -p and a + 2 b t2_max = -q that is p, q >= 0 (plain bounds),
+    # so a fit cannot trade a gain for a falloff that dips and rises again.
+    def falloff(p):
+        return -p[3], (p[3] - p[4]) / (2.0 * t2_max)
+
+    def log_v(p, s):
+        a, b = falloff(p)
+        return np.log(np.maximum(1.0 + a * s + b * s * s, 1e-3))
+
+    def residuals(p):
+        return (p[:3] + (log_v(p, s_ref) - log_v(p, s_view))[:, None] - log_ratio).ravel()
+
+    start = np.concatenate([np.log(median_gain.gain), [0.0, 0.0]])
+    lower = np.array([-np.inf, -np.inf, -np.inf, 0.0, 0.0])
+    fit = least_squares(residuals, start, bounds=(lower, np.inf), loss="soft_l1", f_scale=LOG_RATIO_SCALE,
+                        max_nfev=50)
+    a, b = falloff(fit.x)
+    candidate = Exposure(np.exp(fit.x[:3]).clip(*GAIN_RANGE).astype(np.float32), (float(a), float(b)), t2_max)
+    if float(candidate.vignetting(np.float32(t2_max))) < MIN_FALLOFF:
+        return median_gain
+    return candidate

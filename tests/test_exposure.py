@@ -1,0 +1,82 @@
+"""Exposure and lens falloff: a view's colours brought to the reference camera's."""
+
+import numpy as np
+import pytest
+
+from pis3r.stitch import exposure
+from pis3r.stitch.exposure import MIN_FALLOFF, NEUTRAL, Exposure, corner_t2, fit_exposure, squared_tangents
+from pis3r.camera import intrinsics
+
+GAIN = np.array([1.3, 1.2, 0.9])
+
+
+def _samples(falloff, n=4000, t2_max=0.4, shift=0.15, seed=0):
+    """Radiances seen at squared tangents ``t2_ref`` by the reference and ``t2_view`` by a view
+    with exposure ``1 / GAIN`` relative to it, both through a lens ``1 + a t^2 + b t^4``."""
+    rng = np.random.default_rng(seed)
+    t2_ref = rng.uniform(0, t2_max - shift, n)
+    t2_view = t2_ref + shift * rng.uniform(0.2, 1.0, n)
+    radiance = rng.uniform(0.1, 0.7, (n, 3))
+    lens = Exposure(np.ones(3), falloff, t2_max)
+    reference = radiance * lens.vignetting(t2_ref)[:, None]
+    view = radiance / GAIN * lens.vignetting(t2_view)[:, None]
+    return reference, view, t2_ref, t2_view, t2_max
+
+
+def test_recovers_gain_and_falloff_of_a_vignetted_pair():
+    reference, view, t2_ref, t2_view, t2_max = _samples((-0.6, 0.2))
+    fitted = fit_exposure(reference, view, t2_ref, t2_view, t2_max)
+    np.testing.assert_allclose(fitted.gain, GAIN, rtol=0.01)
+    t2 = np.linspace(0, t2_max, 9)
+    np.testing.assert_allclose(fitted.vignetting(t2), 1 - 0.6 * t2 + 0.2 * t2 ** 2, atol=0.01)
+    # The view's colours become the reference's.
+    np.testing.assert_allclose(view * fitted.factor(t2_ref, t2_view), reference, atol=0.01)
+
+
+def test_a_falloff_needs_a_spread_of_radii_else_the_median_gain():
+    rng = np.random.default_rng(1)
+    t2 = rng.uniform(0, 0.3, 2000)
+    reference = rng.uniform(0.1, 0.7, (2000, 3))
+    fitted = fit_exposure(reference, reference / GAIN, t2, t2 + 0.001 * rng.uniform(size=2000), 0.4)
+    assert fitted.falloff == (0.0, 0.0)
+    np.testing.assert_allclose(fitted.gain, GAIN, rtol=1e-3)
+
+
+def test_the_fit_never_makes_a_lens_brighter_off_axis():
+    # Colour ratios that dip and rise again (a tone curve, not a lens): the fitted falloff
+    # still only darkens outward.
+    reference, view, t2_ref, t2_view, t2_max = _samples((-3.0, 8.0), t2_max=0.3, shift=0.1)
+    fitted = fit_exposure(reference, view, t2_ref, t2_view, t2_max)
+    assert any(fitted.falloff)
+    assert (np.diff(fitted.vignetting(np.linspace(0, t2_max, 50))) <= 1e-6).all()
+
+
+def test_a_falloff_darker_than_any_lens_is_refused(monkeypatch):
+    reference, view, t2_ref, t2_view, t2_max = _samples((-1.9, 0.5), t2_max=0.5, shift=0.2)
+    assert Exposure(np.ones(3), (-1.9, 0.5), t2_max).vignetting(np.array(t2_max)) < MIN_FALLOFF
+    fitted = fit_exposure(reference, view, t2_ref, t2_view, t2_max)
+    assert fitted.falloff == (0.0, 0.0)
+    # Allowed, the same samples give that falloff: the refusal is the limit's doing.
+    monkeypatch.setattr(exposure, "MIN_FALLOFF", 0.05)
+    assert fit_exposure(reference, view, t2_ref, t2_view, t2_max).falloff != (0.0, 0.0)
+
+
+def test_falloff_is_held_beyond_the_widest_angle_seen():
+    lens = Exposure(np.ones(3), (-0.5, 0.0), 0.4)
+    assert lens.vignetting(np.array(2.0)) == pytest.approx(0.8)
+    np.testing.assert_allclose(lens.factor(np.array([3.0]), np.array([0.0])), [[0.8, 0.8, 0.8]], rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", ["few", "clipped"])
+def test_neutral_without_enough_usable_samples(bad):
+    reference, view, t2_ref, t2_view, t2_max = _samples((-0.6, 0.2), n=50 if bad == "few" else 2000)
+    if bad == "clipped":
+        view = np.ones_like(view)
+    assert fit_exposure(reference, view, t2_ref, t2_view, t2_max) is NEUTRAL
+
+
+def test_squared_tangents_of_a_camera():
+    K = intrinsics(100.0, 201, 101)
+    pixels = np.array([[K[0, 2], K[1, 2]], [K[0, 2] + 100, K[1, 2]], [K[0, 2] + 30, K[1, 2] + 40]])
+    np.testing.assert_allclose(squared_tangents(pixels, K), [0.0, 1.0, 0.25], atol=1e-6)
+    assert corner_t2(K, 201, 101) == pytest.approx((100 ** 2 + 50 ** 2) / 100 ** 2)
