@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from pis3r.stitch import exposure
-from pis3r.stitch.exposure import MIN_FALLOFF, NEUTRAL, Exposure, corner_t2, fit_exposure, squared_tangents
+from pis3r.stitch.exposure import (MIN_FALLOFF, NEUTRAL, Exposure, corner_t2, fit_exposure, grid_squared_tangents,
+                                   squared_tangents)
 from pis3r.camera import intrinsics
 
 GAIN = np.array([1.3, 1.2, 0.9])
@@ -80,3 +81,7 @@ def test_squared_tangents_of_a_camera():
     pixels = np.array([[K[0, 2], K[1, 2]], [K[0, 2] + 100, K[1, 2]], [K[0, 2] + 30, K[1, 2] + 40]])
     np.testing.assert_allclose(squared_tangents(pixels, K), [0.0, 1.0, 0.25], atol=1e-6)
     assert corner_t2(K, 201, 101) == pytest.approx((100 ** 2 + 50 ** 2) / 100 ** 2)
+    # A strided window of the grid, by rows and columns apart, is the same per pixel.
+    ys, xs = np.mgrid[7:90:4, 30:181:5]
+    np.testing.assert_allclose(grid_squared_tangents(K, slice(7, 90, 4), slice(30, 181, 5)),
+                               squared_tangents(np.stack([xs, ys], -1).astype(np.float64), K), rtol=1e-6)

@@ -62,8 +62,6 @@ class Exposure:
     def factor(self, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
         """``(..., 3)`` float32 multipliers of view colours at pixels whose squared tangents are
         ``t2_ref`` in the reference camera and ``t2_view`` in the view (same shape)."""
-        if not any(self.falloff):
-            return np.broadcast_to(self.gain.astype(np.float32), t2_ref.shape + (3,))
         ratio = self.vignetting(t2_ref) / self.vignetting(t2_view)
         return ratio[..., None] * self.gain.astype(np.float32)
 
@@ -81,6 +79,15 @@ def squared_tangents(pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
     dx = (pixels[..., 0] - K[0, 2]) / K[0, 0]
     dy = (pixels[..., 1] - K[1, 2]) / K[1, 1]
     return (dx * dx + dy * dy).astype(np.float32)
+
+
+def grid_squared_tangents(K: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    """``(len(rows), len(cols))`` :func:`squared_tangents` of the pixel grid ``rows x cols``
+    (``slice`` s with explicit ``start``, ``stop`` and optionally ``step``), by rows and columns
+    apart: no coordinate arrays of the grid's size."""
+    dx = (np.arange(cols.start, cols.stop, cols.step or 1) - K[0, 2]) / K[0, 0]
+    dy = (np.arange(rows.start, rows.stop, rows.step or 1) - K[1, 2]) / K[1, 1]
+    return (dy[:, None] ** 2 + dx[None, :] ** 2).astype(np.float32)
 
 
 def corner_t2(K: np.ndarray, width: int, height: int) -> float:

@@ -41,7 +41,8 @@ from pis3r.camera import Camera
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
 from pis3r.scene import Scene
 from pis3r.stitch.blend import BAND_FRACTION
-from pis3r.stitch.exposure import MIN_SAMPLES, NEUTRAL, Exposure, corner_t2, fit_exposure, squared_tangents
+from pis3r.stitch.exposure import (MIN_SAMPLES, NEUTRAL, Exposure, corner_t2, fit_exposure, grid_squared_tangents,
+                                   squared_tangents)
 from pis3r.stitch.raster import Raster, Triangles, rasterise
 
 # Points closer than this (relative to the median scene depth) are numerically on
@@ -247,8 +248,9 @@ def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_cam
     grid = (slice(rows.start, rows.stop, stride), slice(cols.start, cols.stop, stride))
     layer, uv = raster.layer[grid].ravel(), raster.uv[grid].reshape(-1, 2)
     reference = ref_image[::stride, ::stride].reshape(-1, 3)
-    ys, xs = np.mgrid[0:ref_image.shape[0]:stride, 0:ref_image.shape[1]:stride]
-    t2_ref = squared_tangents(np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64), ref_camera.K)
+    t2_ref = grid_squared_tangents(ref_camera.K, slice(0, ref_image.shape[0], stride),
+                                   slice(0, ref_image.shape[1], stride)).ravel()
+    ref_t2_max = corner_t2(ref_camera.K, ref_camera.width, ref_camera.height)
     exposures = []
     for k, index in enumerate(indices):
         chosen = np.flatnonzero(layer == k)
@@ -256,8 +258,7 @@ def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_cam
             exposures.append(NEUTRAL)
             continue
         camera = scene.views[index].camera
-        t2_max = max(corner_t2(ref_camera.K, ref_camera.width, ref_camera.height),
-                     corner_t2(camera.K, camera.width, camera.height))
+        t2_max = max(ref_t2_max, corner_t2(camera.K, camera.width, camera.height))
         exposures.append(fit_exposure(reference[chosen], _sample_points(scene.views[index].image, uv[chosen]),
                                       t2_ref[chosen], squared_tangents(uv[chosen].astype(np.float64), camera.K),
                                       t2_max))
@@ -282,9 +283,8 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
                             borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
-            ys, xs = np.mgrid[box]
-            t2_canvas = squared_tangents(np.stack([xs, ys], axis=-1).astype(np.float32), canvas_K)
-            sampled *= exposure.factor(t2_canvas, squared_tangents(uv, scene.views[index].camera.K))
+            sampled *= exposure.factor(grid_squared_tangents(canvas_K, *box),
+                                       squared_tangents(uv, scene.views[index].camera.K))
         elif (exposure.gain != 1).any():
             cv2.multiply(sampled, tuple(float(g) for g in exposure.gain) + (0.0,), dst=sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
