@@ -144,4 +144,13 @@ def test_the_local_homographies_must_beat_the_others_by_their_handicap():
 def test_a_candidate_that_cannot_stitch_the_band_scores_minus_infinity():
     score = BandScore(Candidate("3d", "planar"), -math.inf, 0.0, "no essential matrix")
     assert score.to_dict() == {"model": "3d", "depth_fill": "planar", "focal_rule": None, "band_psnr": None,
-                               "band_coverage": 0.0, "error": "no essential matrix"}
+                               "band_coverage": 0.0, "band_model": None, "error": "no essential matrix"}
+
+
+def test_the_backends_own_test_stands_for_the_model_it_made_on_the_band():
+    """What predicted the band makes the stitch: ``auto`` becomes the model its band scene had."""
+    auto = Candidate("auto", "planes")
+    assert BandScore(auto, 20.0, 1.0, scene_model="homography").tested == Candidate("homography")
+    assert BandScore(auto, 20.0, 1.0, scene_model="3d").tested == Candidate("3d", "planes")
+    assert BandScore(Candidate("apap"), 20.0, 1.0, scene_model="apap").tested == Candidate("apap")
+    assert BandScore(auto, 20.0, 1.0, scene_model="3d").to_dict()["band_model"] == "3d"

@@ -85,18 +85,33 @@ class Candidate:
 @dataclass(frozen=True)
 class BandScore:
     """How well ``candidate`` predicted the held-back band: ``psnr`` (dB, over the whole
-    band), ``coverage`` (share of the band it rendered or inpainted); ``error``: why it could
-    not stitch the band (then ``psnr`` is ``-inf``)."""
+    band), ``coverage`` (share of the band it rendered or inpainted), ``scene_model``: the
+    model its scene of the band had (``homography``, ``apap``, ``3d``); ``error``: why it could
+    not stitch the band (then ``psnr`` is ``-inf`` and ``scene_model`` empty)."""
 
     candidate: Candidate
     psnr: float
     coverage: float
     error: str = ""
+    scene_model: str = ""
+
+    @property
+    def tested(self) -> Candidate:
+        """The candidate as the band saw it: the backend's own test (``auto``) may decide
+        otherwise on the whole photos than on the band's copies, and what makes the stitch
+        must be what predicted the band."""
+        candidate = self.candidate
+        if candidate.model != "auto":
+            return candidate
+        if self.scene_model == "homography":
+            return Candidate("homography")
+        return Candidate("3d", candidate.depth_fill, candidate.focal_rule)
 
     def to_dict(self) -> dict:
         finite = math.isfinite(self.psnr)
         return {**self.candidate.to_dict(), "band_psnr": round(self.psnr, 3) if finite else None,
-                "band_coverage": round(self.coverage, 4), **({"error": self.error} if self.error else {})}
+                "band_coverage": round(self.coverage, 4), "band_model": self.scene_model or None,
+                **({"error": self.error} if self.error else {})}
 
 
 @dataclass(frozen=True)
@@ -155,30 +170,20 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
-        BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()))
-        for candidate, (predicted, covered, error, _) in zip(allowed, renders)
+        BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()),
+                  scene_model=scene_model)
+        for candidate, (predicted, covered, error, scene_model) in zip(allowed, renders)
     )
     best = best_score(scores)
     if not math.isfinite(scores[best].psnr):
         return ModelChoice(None, scores)
-    return ModelChoice(_as_tested(scores[best].candidate, renders[best][3]), scores)
+    return ModelChoice(scores[best].tested, scores)
 
 
 def best_score(scores: tuple[BandScore, ...]) -> int:
     """Index of the candidate that makes the stitch: the best band score once each is
     handicapped by ``BAND_HANDICAP_DB`` for its model (the first of equals)."""
     return max(range(len(scores)), key=lambda k: scores[k].psnr - BAND_HANDICAP_DB.get(scores[k].candidate.model, 0.0))
-
-
-def _as_tested(candidate: Candidate, scene_model: str) -> Candidate:
-    """The model the band test saw ``candidate`` make (``scene_model``): the backend's own
-    test (``auto``) may decide otherwise on the whole photos than on the band's copies, and
-    what makes the stitch must be what predicted the band."""
-    if candidate.model != "auto":
-        return candidate
-    if scene_model == "homography":
-        return Candidate("homography")
-    return Candidate("3d", candidate.depth_fill, candidate.focal_rule)
 
 
 def _working_size(photo: Photo) -> Photo:
