@@ -361,12 +361,14 @@ def _depth_edges(idepth: np.ndarray) -> np.ndarray:
 
 def _plane_depth(K: np.ndarray, n: np.ndarray, d: float, width: int, height: int) -> np.ndarray:
     """z-depth ``(H, W)`` of the plane ``n . X = d`` seen by camera ``K`` (0 where behind)."""
-    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
-    denom = rays @ n
+    # A pixel's ray is K^-1 (u, v, 1), so n . ray = a u + b v + c with (a, b, c) = n K^-1: built
+    # by rows and columns apart, no (H, W, 3) rays (a 12 MP photo's cost 0.27 s a plane).
+    a, b, c = np.asarray(n, np.float64) @ np.linalg.inv(K)
+    denom = (a * np.arange(width))[None, :] + (b * np.arange(height) + c)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
-        depth = d / denom
-    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        depth = np.divide(d, denom)
+    depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
+    return depth.astype(np.float32)
 
 
 def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float | None:

@@ -56,13 +56,19 @@ class Exposure:
     def vignetting(self, t2: np.ndarray) -> np.ndarray:
         """``V`` at squared tangents ``t2`` (any shape), float32."""
         a, b = self.falloff
-        t2 = np.minimum(t2, self.t2_max)
-        return (1.0 + a * t2 + b * t2 * t2).astype(np.float32)
+        # 1 + t2 (a + b t2), in place on one float32 copy: canvases of tens of megapixels.
+        t2 = np.minimum(np.asarray(t2, np.float32), np.float32(self.t2_max))
+        out = t2 * np.float32(b)
+        out += np.float32(a)
+        out *= t2
+        out += np.float32(1.0)
+        return out
 
     def factor(self, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
         """``(..., 3)`` float32 multipliers of view colours at pixels whose squared tangents are
         ``t2_ref`` in the reference camera and ``t2_view`` in the view (same shape)."""
-        ratio = self.vignetting(t2_ref) / self.vignetting(t2_view)
+        ratio = self.vignetting(t2_ref)
+        ratio /= self.vignetting(t2_view)
         return ratio[..., None] * self.gain.astype(np.float32)
 
     def to_dict(self) -> dict:
@@ -76,9 +82,16 @@ NEUTRAL = Exposure(np.ones(3, np.float32))
 def squared_tangents(pixels: np.ndarray, K: np.ndarray) -> np.ndarray:
     """``(...)`` squared tangent of each pixel's ray off the optical axis, for ``pixels``
     ``(..., 2)`` of a camera with intrinsics ``K`` ``(3, 3)``."""
-    dx = (pixels[..., 0] - K[0, 2]) / K[0, 0]
-    dy = (pixels[..., 1] - K[1, 2]) / K[1, 1]
-    return (dx * dx + dy * dy).astype(np.float32)
+    # In the pixels' own precision, in place: on a canvas of tens of megapixels the float64
+    # temporaries of a mixed expression cost more than sampling the colours.
+    dx = pixels[..., 0] - float(K[0, 2])
+    dx /= float(K[0, 0])
+    dx *= dx
+    dy = pixels[..., 1] - float(K[1, 2])
+    dy /= float(K[1, 1])
+    dy *= dy
+    dx += dy
+    return dx.astype(np.float32, copy=False)
 
 
 def grid_squared_tangents(K: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
@@ -87,7 +100,7 @@ def grid_squared_tangents(K: np.ndarray, rows: slice, cols: slice) -> np.ndarray
     apart: no coordinate arrays of the grid's size."""
     dx = (np.arange(cols.start, cols.stop, cols.step or 1) - K[0, 2]) / K[0, 0]
     dy = (np.arange(rows.start, rows.stop, rows.step or 1) - K[1, 2]) / K[1, 1]
-    return (dy[:, None] ** 2 + dx[None, :] ** 2).astype(np.float32)
+    return (dy * dy).astype(np.float32)[:, None] + (dx * dx).astype(np.float32)[None, :]
 
 
 def corner_t2(K: np.ndarray, width: int, height: int) -> float:
