@@ -66,7 +66,12 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` RGB to ``(H, W)`` uint8 luminance: float in [0, 1] is rounded half up,
     uint8 (already quantised by the caller) is converted as it is."""
     if image.dtype != np.uint8:
-        image = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        # The same float arithmetic as clip(image * 255 + 0.5), on one buffer: full-resolution
+        # photos are tens of millions of samples.
+        scaled = image * 255.0
+        scaled += 0.5
+        np.clip(scaled, 0, 255, out=scaled)
+        image = scaled.astype(np.uint8)
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 

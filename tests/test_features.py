@@ -169,3 +169,18 @@ def test_the_way_back_from_one_product_is_the_second_products():
     assert len(found) > 150
     # The twins' column has its second best as close as its best: neither twin matches.
     assert not np.isin(points_a[:2], found.pts_a).all(axis=1).any()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_float_images_become_luminance_rounded_half_up_and_clipped(dtype):
+    rng = np.random.default_rng(0)
+    image = (rng.random((40, 50, 3)) * 1.4 - 0.2).astype(dtype)
+    image[0, :3] = [[-1.0] * 3, [2.0] * 3, [1.0 / 255.0] * 3]
+    expected = cv2.cvtColor(np.floor(np.clip(image.astype(np.float64) * 255.0 + 0.5, 0, 255)).astype(np.uint8),
+                            cv2.COLOR_RGB2GRAY)
+    gray = to_gray_u8(image)
+    assert gray.dtype == np.uint8 and gray.shape == (40, 50)
+    assert list(gray[0, :3]) == [0, 255, 1]
+    # float32 rounding may move a value sitting on a .5 by one step; nothing more.
+    assert np.abs(gray.astype(int) - expected).max() <= 1 and (gray == expected).mean() > 0.99
+    np.testing.assert_array_equal(to_gray_u8(expected[..., None].repeat(3, axis=2)), expected)
