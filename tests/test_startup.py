@@ -22,6 +22,15 @@ print("torch" in sys.modules, "scipy" in sys.modules)
 """
 
 
+AUTO_BACKEND_WITHOUT_WEIGHTS = r"""
+import sys
+from pis3r.reconstruct.base import resolve_backend_name
+from pis3r.reconstruct.options import ReconstructOptions
+
+print(resolve_backend_name("auto", ReconstructOptions()), "huggingface_hub.file_download" in sys.modules)
+"""
+
+
 def _python(*args: str) -> str:
     proc = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -30,6 +39,14 @@ def _python(*args: str) -> str:
 
 def test_a_classical_stitch_on_the_cpu_never_imports_torch():
     assert _python("-c", STITCH_WITHOUT_TORCH).split() == ["False", "True"]
+
+
+def test_looking_for_vggt_weights_in_an_empty_cache_imports_no_download_machinery(tmp_path, monkeypatch):
+    """``--backend auto`` (the default) looks for VGGT weights first: on a machine that never
+    fetched them the answer must not cost huggingface_hub's download stack (0.1 s a run)."""
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path))
+    monkeypatch.delenv("PIS3R_VGGT_WEIGHTS", raising=False)
+    assert _python("-c", AUTO_BACKEND_WITHOUT_WEIGHTS).split() == ["classical", "False"]
 
 
 @pytest.mark.parametrize("args", [["--help"], ["stitch", "--help"], ["batch", "--help"]])

@@ -41,9 +41,16 @@ def find_weights(path: str | os.PathLike | None = None) -> Path | None:
     if env:
         return Path(env).expanduser()
     try:
-        from huggingface_hub import try_to_load_from_cache
+        from huggingface_hub import constants
     except ImportError:
         return None
+    # The repository's cache folder (Hugging Face's layout: ``models--owner--name``) is
+    # absent on every machine that never fetched the weights: then the answer is None
+    # without importing the download machinery (0.1 s of every classical run's start).
+    if not (Path(constants.HF_HUB_CACHE) / f"models--{HF_REPO.replace('/', '--')}").is_dir():
+        return None
+    from huggingface_hub import try_to_load_from_cache
+
     for filename in HF_FILES:
         hit = try_to_load_from_cache(HF_REPO, filename)
         if isinstance(hit, str) and Path(hit).is_file():
