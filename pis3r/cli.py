@@ -91,7 +91,10 @@ def main() -> None:
 
     Start with:  pis3r stitch left.jpg right.jpg -o out/
     """
-    reuse_freed_memory()
+    # A one-off command ends soon and frees everything; the web server runs on and hands
+    # its memory back between jobs.
+    if click.get_current_context().invoked_subcommand != "serve":
+        reuse_freed_memory()
 
 
 @main.command("stitch")

@@ -85,3 +85,16 @@ def test_the_command_keeps_freed_arrays_for_the_next_stage_instead_of_faulting_t
         pytest.skip("the C library has no mallopt (not glibc)")
     _, default_faults = _python("-c", REFAULTS_OF_A_FREED_ARRAY, "default").split()
     assert int(default_faults) > 500 and int(faults) < 50
+
+
+@pytest.mark.parametrize("command, applied", [("stitch", True), ("batch", True), ("serve", False)])
+def test_one_off_commands_keep_freed_memory_and_the_web_server_hands_it_back(command, applied, monkeypatch):
+    from click.testing import CliRunner
+
+    import pis3r.cli
+
+    calls = []
+    monkeypatch.setattr(pis3r.cli, "reuse_freed_memory", lambda: calls.append(command))
+    # The group's own code runs before the subcommand parses its options (here: --help).
+    result = CliRunner().invoke(pis3r.cli.main, [command, "--help"])
+    assert result.exit_code == 0 and calls == ([command] if applied else [])
