@@ -31,13 +31,15 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
 def reuse_freed_memory() -> bool:
     """Keep freed large blocks in this process's heap (glibc ``mallopt``; see
-    ``MMAP_THRESHOLD_BYTES``). Returns False where the C library has no ``mallopt`` (not
-    glibc): nothing changes there."""
+    ``MMAP_THRESHOLD_BYTES``). Returns False off Linux or where the C library has no
+    ``mallopt`` (not glibc): nothing changes there."""
+    if not sys.platform.startswith("linux"):
+        return False
     import ctypes
 
     try:
         mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):
         return False
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(mallopt(_M_TRIM_THRESHOLD,
                                                                                    TRIM_THRESHOLD_BYTES))

@@ -98,3 +98,10 @@ def test_one_off_commands_keep_freed_memory_and_the_web_server_hands_it_back(com
     # The group's own code runs before the subcommand parses its options (here: --help).
     result = CliRunner().invoke(pis3r.cli.main, [command, "--help"])
     assert result.exit_code == 0 and calls == ([command] if applied else [])
+
+
+def test_off_linux_the_heap_is_left_as_it_is(monkeypatch):
+    import pis3r.cli
+
+    monkeypatch.setattr(pis3r.cli.sys, "platform", "win32")
+    assert pis3r.cli.reuse_freed_memory() is False
