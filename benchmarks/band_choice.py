@@ -6,8 +6,8 @@
 For each pair (reference = centre crop of ``ref``, target = ``tgt``, GT = ``ref``): the default
 stitch (``--model auto``), with the band score of every candidate and the model each made on
 the band; then the same inputs stitched with every model forced (``homography``, ``apap``,
-``3d``), each scored on the filled extension with exact placement (PSNR, LPIPS), a failure as
-an empty extension. Prints, per pair, each candidate's band PSNR beside the crop PSNR of the
+``3d``), each scored on the filled extension with exact placement (PSNR), a failure as an
+empty extension. Prints, per pair, each candidate's band PSNR beside the crop PSNR of the
 model it stands for, the choice, and its regret (the best forced model's crop PSNR minus the
 choice's). Then per parallax class: the mean crop PSNR of the choice, of each model forced on
 every pair, and of the best model per pair (what a perfect choice would give), and the pairs
@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from pis3r.api import stitch
@@ -44,11 +44,10 @@ REGRET_DB = 1.0
 
 @dataclass(frozen=True)
 class CropScore:
-    """A stitch of one case under the crop protocol: ``psnr``, ``lpips`` on the filled
-    extension; ``error``: why it failed (then it scores as an empty extension)."""
+    """A stitch of one case under the crop protocol: ``psnr`` on the filled extension;
+    ``error``: why it failed (then it scores as an empty extension)."""
 
     psnr: float
-    lpips: float
     error: str = ""
 
 
@@ -82,10 +81,8 @@ def crop_score(case: EvalCase, options: StitchOptions) -> tuple[CropScore, dict]
     try:
         result = stitch([case.reference, case.target], options)
     except Pis3rError as exc:
-        failed = score_failure(case)
-        return CropScore(failed["bar_psnr"], failed["bar_lpips"], str(exc)), {}
-    scores = score_exact(result, tuple(int(v) for v in result.ref_offset), case)
-    return CropScore(scores["bar_psnr"], scores["bar_lpips"]), result.report
+        return CropScore(score_failure(case)["bar_psnr"], str(exc)), {}
+    return CropScore(score_exact(result, tuple(int(v) for v in result.ref_offset), case)["bar_psnr"]), result.report
 
 
 def evaluate_pair(case: EvalCase) -> PairChoice:
@@ -100,8 +97,7 @@ def evaluate_pair(case: EvalCase) -> PairChoice:
         tested = BandScore(candidate, band, entry["band_coverage"], scene_model=entry["band_model"] or "").tested
         scores.append((candidate.label, band, tested.model if entry["band_model"] else ""))
     chosen = (choice.get("chosen") or {}).get("model")
-    forced = {model: crop_score(case, StitchOptions(backend="classical", device="cpu", model=model))[0]
-              for model in FORCED_MODELS}
+    forced = {model: crop_score(case, replace(base, model=model))[0] for model in FORCED_MODELS}
     return PairChoice(case.name, case.parallax_class, tuple(scores), chosen, auto, forced)
 
 

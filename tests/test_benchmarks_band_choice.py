@@ -50,8 +50,8 @@ def test_each_band_candidate_is_paired_with_the_forced_model_it_stands_for(crop_
 
 def _row(name, chosen_psnr, forced):
     score = band_choice.CropScore
-    return band_choice.PairChoice(name, "slight", (), "homography", score(chosen_psnr, 0.1),
-                                  {model: score(value, 0.1) for model, value in forced.items()})
+    return band_choice.PairChoice(name, "slight", (), "homography", score(chosen_psnr),
+                                  {model: score(value) for model, value in forced.items()})
 
 
 def test_the_class_summary_counts_the_pairs_a_better_model_would_have_won_by_more_than_the_regret_bar():

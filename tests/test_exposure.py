@@ -80,6 +80,9 @@ def test_squared_tangents_of_a_camera():
     K = intrinsics(100.0, 201, 101)
     pixels = np.array([[K[0, 2], K[1, 2]], [K[0, 2] + 100, K[1, 2]], [K[0, 2] + 30, K[1, 2] + 40]])
     np.testing.assert_allclose(squared_tangents(pixels, K), [0.0, 1.0, 0.25], atol=1e-6)
+    # Integer pixels and float32 pixels (a raster's) give the same tangents.
+    np.testing.assert_allclose(squared_tangents(pixels.astype(np.int64), K), [0.0, 1.0, 0.25], atol=1e-6)
+    np.testing.assert_allclose(squared_tangents(pixels.astype(np.float32), K), [0.0, 1.0, 0.25], atol=1e-6)
     assert corner_t2(K, 201, 101) == pytest.approx((100 ** 2 + 50 ** 2) / 100 ** 2)
     # A strided window of the grid, by rows and columns apart, is the same per pixel.
     ys, xs = np.mgrid[7:90:4, 30:181:5]

@@ -44,10 +44,12 @@ def find_weights(path: str | os.PathLike | None = None) -> Path | None:
         from huggingface_hub import constants
     except ImportError:
         return None
-    # The repository's cache folder (Hugging Face's layout: ``models--owner--name``) is
-    # absent on every machine that never fetched the weights: then the answer is None
-    # without importing the download machinery (0.1 s of every classical run's start).
-    if not (Path(constants.HF_HUB_CACHE) / f"models--{HF_REPO.replace('/', '--')}").is_dir():
+    # The repository's cache folder (Hugging Face's layout: ``models--owner--name``, from its
+    # own constants) is absent on every machine that never fetched the weights: then the
+    # answer is None without importing the download machinery (0.1 s of every classical
+    # run's start).
+    folder = constants.REPO_ID_SEPARATOR.join([f"{constants.REPO_TYPE_MODEL}s", *HF_REPO.split("/")])
+    if not (Path(constants.HF_HUB_CACHE) / folder).is_dir():
         return None
     from huggingface_hub import try_to_load_from_cache
 
