@@ -15,7 +15,8 @@ it, the focal and the relative pose exported for it.
    support (so the rendered plane is the homography exactly).
 4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
    refined jointly over all inliers (robust Sampson, weak prior). A focal the matches do not
-   determine, or one outside ordinary lenses, is a warning.
+   determine is the one both photos' vanishing points give where they agree
+   (:mod:`pis3r.reconstruct.vanishing`); else, like one outside ordinary lenses, a warning.
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ import numpy as np
 
 from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
-from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match
+from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
-from pis3r.reconstruct import geometry
+from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import (
     FocalHypothesis,
     fit_rotation,
@@ -197,7 +198,17 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
         # self-calibrated pose, the fit stays in that pose's basin).
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
-    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key)
+
+    def own_focal(photo: Photo) -> float | None:
+        # Edges are found once per photo, whichever pair or model asks.
+        return remember(("vanishing", id(photo)), lambda: vanishing.photo_focal(to_gray_u8(photo.pixels)))
+
+    def seen_focal(ratio: float) -> float | None:
+        focal_ref = own_focal(ref)
+        return None if focal_ref is None else vanishing.agreed_focal(focal_ref, own_focal(other), ratio)
+
+    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
+                      seen_focal)
     if pose is None:
         hypothesis = hypotheses[0]
         K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
@@ -260,13 +271,16 @@ def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
 
 
 def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
-               plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str):
+               plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str,
+               seen_focal: Callable[[float], float | None]):
     """``(PoseFit, focal source, warnings, details)`` of the best essential-matrix pose over
     the focal hypotheses and starting focals (refined jointly), or ``None``. A later
     hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
     noisy matches, a wrong focal relation fits them a little better about as often as not.
-    An unknown focal the matches do not determine comes with a warning: it is where the
-    weak prior held it, or the prior itself when the matches lie on one plane (``plane_only``).
+    An unknown focal the matches do not determine is the one both photos' vanishing points
+    give (``seen_focal(ratio)``, :mod:`pis3r.reconstruct.vanishing`) where they agree and the
+    matches fit it; else it comes with a warning: it is where the weak prior held it, or the
+    prior itself when the matches lie on one plane (``plane_only``).
     ``remember``: see :func:`estimate_pair`, with ``matches_key`` naming the matches' values."""
     key = ("essential", matches_key, tuple(hypotheses), size_a, size_b)
     best = remember(key, lambda: _best_essential(inliers, hypotheses, size_a, size_b))
@@ -278,6 +292,13 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
         return fit, known_source, [], details
     evidence = 0.0 if plane_only else remember((*key, "evidence"), lambda: _focal_evidence(inliers, fit))
     details["focal_evidence"] = evidence
+    if evidence < FOCAL_EVIDENCE:
+        seen = remember((*key, "vanishing"), lambda: _vanishing_fit(inliers, fit, hypothesis, size_a, size_b,
+                                                                    seen_focal(hypothesis.ratio)))
+        if seen is not None:
+            focal = float(seen.K_a[0, 0])
+            warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
+            return seen, "vanishing points (both photos agree; the matches leave it free)", warnings, details
     if plane_only:
         # A plane tells nothing about the focal: take the prior, not where the fit drifted.
         K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
@@ -310,6 +331,23 @@ def _best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a,
         if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
             best = (fit, hypothesis)
     return best
+
+
+def _vanishing_fit(inliers: Matches, fit: geometry.PoseFit, hypothesis: FocalHypothesis, size_a, size_b,
+                   focal: float | None) -> geometry.PoseFit | None:
+    """The pose at the vanishing points' reference ``focal`` (held fixed; a fresh essential
+    fit and ``fit`` refined, the better kept), or ``None`` without a focal or when the
+    matches fit it worse than ``fit`` by more than ``FOCAL_EVIDENCE``: then they do say
+    something about the focal, and it is not that."""
+    if focal is None:
+        return None
+    K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+    starts = [(fit.R, fit.t)]
+    pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
+    if pose is not None:
+        starts.append(pose[:2])
+    best = min((geometry.refine_pose(inliers, R, t, K_a, K_b) for R, t in starts), key=lambda p: p.cost)
+    return best if best.cost <= fit.cost + FOCAL_EVIDENCE else None
 
 
 def _focal_evidence(inliers: Matches, fit: geometry.PoseFit) -> float:
