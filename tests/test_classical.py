@@ -160,3 +160,32 @@ def test_local_warp_threshold_is_in_pixels_of_the_photo_as_read():
     assert half.scale == pytest.approx(0.5)
     assert local_warp_threshold(half) == pytest.approx(0.5 * LOCAL_WARP_THRESHOLD_PX)
     assert local_warp_threshold(downscaled(large, 0.25)) == pytest.approx(0.5 * LOCAL_WARP_THRESHOLD_PX)
+
+
+def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monkeypatch):
+    """Photos are detected concurrently; each once, whatever the order or repeats, and each
+    gets the features it would get alone."""
+    import threading
+
+    import pis3r.reconstruct.classical as classical
+    from pis3r.reconstruct.pairs import PhotoFeatures
+
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt"), Photo(ref_img[:, ::-1].copy(), "flipped")]
+    detected, threads = [], set()
+
+    def counted(photo):
+        detected.append(photo.name)
+        threads.add(threading.get_ident())
+        return PhotoFeatures(photo)
+
+    monkeypatch.setattr(classical, "PhotoFeatures", counted)
+    reconstructor = ClassicalReconstructor(ReconstructOptions())
+    found = reconstructor._features([photos[0], photos[1], photos[0], photos[2]])
+    assert sorted(detected) == ["flipped", "ref", "tgt"] and len(threads) == 2
+    assert found[0] is found[2]
+    for photo, features in zip([photos[0], photos[1], photos[2]], [found[0], found[1], found[3]]):
+        alone = PhotoFeatures(photo).sift
+        np.testing.assert_array_equal(features.sift.points, alone.points)
+        np.testing.assert_array_equal(features.sift.descriptors, alone.descriptors)
+    assert reconstructor._features(photos[1:2])[0] is found[1] and len(detected) == 3

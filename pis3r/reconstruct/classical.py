@@ -83,7 +83,7 @@ class ClassicalReconstructor:
         counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
-        features = [self._memoised(("features", id(p)), lambda p=p: PhotoFeatures(p)) for p in photos]
+        features = self._features(photos)
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
         registered: dict[int, View] = {}
@@ -178,8 +178,17 @@ class ClassicalReconstructor:
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
         cv2.setRNGSeed(0)
-        return self.pair_geometry(PhotoFeatures(ref), PhotoFeatures(other), *self._known_focal(ref),
+        return self.pair_geometry(*self._features([ref, other]), *self._known_focal(ref),
                                   focal_is_final=bool(self.options.focal))
+
+    def _features(self, photos: list[Photo]) -> list[PhotoFeatures]:
+        """Each photo's features, memoised; those not yet found are detected two photos at a
+        time (OpenCV's SIFT releases the GIL and leaves a core idle for part of each photo)."""
+        missing = list({id(p): p for p in photos if ("features", id(p)) not in self.memo}.values())
+        with ThreadPoolExecutor(2) as pool:
+            for photo, found in zip(missing, list(pool.map(PhotoFeatures, missing))):
+                self.memo["features", id(photo)] = found
+        return [self.memo["features", id(p)] for p in photos]
 
     def pair_geometry(self, ref: PhotoFeatures, other: PhotoFeatures, focal_ref: float | None = None,
                       source: str = "", focal_is_final: bool = False, named: bool = False) -> PairGeometry:
