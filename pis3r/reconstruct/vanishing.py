@@ -78,7 +78,7 @@ def vanishing_points(edges: np.ndarray, width: int, height: int) -> list[tuple[n
     lines = np.cross(np.c_[start, np.ones(len(edges))], np.c_[end, np.ones(len(edges))])
     first, second = np.triu_indices(min(len(edges), CANDIDATE_EDGES), 1)
     candidates = _unit(np.cross(lines[first], lines[second]))
-    supports = _edge_sines(candidates, midpoints, directions) < np.sin(np.deg2rad(EDGE_ANGLE_DEG))
+    supports = _supports(candidates, midpoints, directions)
     unexplained, total, found = np.ones(len(edges), bool), lengths.sum(), []
     for _ in range(MAX_POINTS):
         scores = (supports & unexplained) @ lengths
@@ -90,7 +90,7 @@ def vanishing_points(edges: np.ndarray, width: int, height: int) -> list[tuple[n
         weighted = lines[members] / np.linalg.norm(lines[members, :2], axis=1, keepdims=True)
         point = np.linalg.svd(weighted * np.sqrt(lengths[members])[:, None])[2][-1]
         found.append((point, float(scores[best] / total)))
-        unexplained &= ~(_edge_sines(point[None], midpoints, directions)[0] < np.sin(np.deg2rad(EDGE_ANGLE_DEG)))
+        unexplained &= ~_supports(point[None], midpoints, directions)[0]
     return found
 
 
@@ -135,12 +135,20 @@ def agreed_focal(focal_a: float | None, focal_b: float | None, ratio: float) -> 
     return float(np.sqrt(focal_a * focal_b))
 
 
-def _edge_sines(points: np.ndarray, midpoints: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """``(M, N)``: sine of the angle between each edge and the line from its midpoint to each
-    homogeneous point ``(M, 3)``."""
-    towards = points[:, None, :2] - points[:, None, 2:] * midpoints[None]
-    cross = directions[None, :, 0] * towards[..., 1] - directions[None, :, 1] * towards[..., 0]
-    return np.abs(cross) / (np.linalg.norm(towards, axis=-1) + 1e-12)
+def _supports(points: np.ndarray, midpoints: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """``(M, N)`` bool: whether the line from each edge's midpoint to each homogeneous point
+    ``(M, 3)`` is within ``EDGE_ANGLE_DEG`` of the edge (``sin^2`` compared, no roots or
+    divisions: this runs over every candidate and edge)."""
+    towards_x = points[:, :1] - points[:, 2:] * midpoints[None, :, 0]
+    towards_y = points[:, 1:2] - points[:, 2:] * midpoints[None, :, 1]
+    cross = directions[None, :, 0] * towards_y
+    cross -= directions[None, :, 1] * towards_x
+    towards_x *= towards_x
+    towards_y *= towards_y
+    towards_x += towards_y
+    towards_x *= np.sin(np.deg2rad(EDGE_ANGLE_DEG)) ** 2
+    cross *= cross
+    return cross < towards_x
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
