@@ -204,8 +204,9 @@ def estimate_pair(ref: Photo, other: Photo, found: ConsistentMatches, focal_ref:
         return remember(("vanishing", id(photo)), lambda: vanishing.photo_focal(to_gray_u8(photo.pixels)))
 
     def seen_focal(ratio: float) -> float | None:
-        focal_ref = own_focal(ref)
-        return None if focal_ref is None else vanishing.agreed_focal(focal_ref, own_focal(other), ratio)
+        # The other photo's edges are searched only when the reference's give a focal.
+        reference_focal = own_focal(ref)
+        return None if reference_focal is None else vanishing.agreed_focal(reference_focal, own_focal(other), ratio)
 
     pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
                       seen_focal)
@@ -292,26 +293,23 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
         return fit, known_source, [], details
     evidence = 0.0 if plane_only else remember((*key, "evidence"), lambda: _focal_evidence(inliers, fit))
     details["focal_evidence"] = evidence
+    source = "self-calibrated (essential matrix + Sampson refinement)"
     if evidence < FOCAL_EVIDENCE:
         seen = remember((*key, "vanishing"), lambda: _vanishing_fit(inliers, fit, hypothesis, size_a, size_b,
                                                                     seen_focal(hypothesis.ratio)))
-        if seen is not None:
-            focal = float(seen.K_a[0, 0])
-            warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
-            return seen, "vanishing points (both photos agree; the matches leave it free)", warnings, details
-    if plane_only:
-        # A plane tells nothing about the focal: take the prior, not where the fit drifted.
-        K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
-        fit = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
-    if evidence < FOCAL_EVIDENCE:
-        why = ("the matches lie on one plane" if plane_only else
-               f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
-        return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
-            f"these two views do not determine the focal length ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
-            "the exported cameras depend on it, pass --focal if you know it"], details
-    focal = float(fit.K_a[0, 0])
-    warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
-    return fit, "self-calibrated (essential matrix + Sampson refinement)", warnings, details
+        if seen is None:
+            if plane_only:
+                # A plane tells nothing about the focal: take the prior, not where the fit drifted.
+                K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
+                fit = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+            why = ("the matches lie on one plane" if plane_only else
+                   f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
+            return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
+                f"these two views do not determine the focal length ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
+                "the exported cameras depend on it, pass --focal if you know it"], details
+        fit, source = seen, "vanishing points (both photos agree; the matches leave it free)"
+    warnings = [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
+    return fit, source, warnings, details
 
 
 def _best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b):

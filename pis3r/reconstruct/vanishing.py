@@ -113,11 +113,10 @@ def photo_focal(gray: np.ndarray) -> float | None:
         if squared <= 0 or not FOCAL_RANGE[0] < np.sqrt(squared) < FOCAL_RANGE[1]:
             continue
         focal = np.sqrt(squared)
-        # Directions in the camera (K^-1 v, K in units of the longest side) and the third one.
-        third = np.cross(*[_unit(np.array([v[0], v[1], focal * v[2]])) for v in (v1, v2)])
+        third = np.cross(_direction(v1, focal), _direction(v2, focal))
         support = support_1 + support_2 + max(
-            [s for k, (v, s) in enumerate(points) if k not in (i, j)
-             and abs(_unit(np.array([v[0], v[1], focal * v[2]])) @ third) > np.cos(np.deg2rad(THIRD_ANGLE_DEG))],
+            [s for k, (v, s) in enumerate(points)
+             if k not in (i, j) and abs(_direction(v, focal) @ third) > np.cos(np.deg2rad(THIRD_ANGLE_DEG))],
             default=0.0)
         if best is None or support > best[1]:
             best = (float(focal) * max(width, height), support)
@@ -149,6 +148,12 @@ def _supports(points: np.ndarray, midpoints: np.ndarray, directions: np.ndarray)
     towards_x *= np.sin(np.deg2rad(EDGE_ANGLE_DEG)) ** 2
     cross *= cross
     return cross < towards_x
+
+
+def _direction(point: np.ndarray, focal: float) -> np.ndarray:
+    """The unit direction in the camera, ``K^-1 v``, of a vanishing point ``(3,)`` (centred
+    pixels over the longest side, as :func:`vanishing_points` gives it) at ``focal`` (same units)."""
+    return _unit(np.array([point[0], point[1], focal * point[2]]))
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
