@@ -120,15 +120,17 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))
     ordered = [photos[i] for i in order]
+    # The band test matches the first two photos to pick its detector; the stitch reuses that.
+    memo: dict = {}
     with timer.stage("choose model"):
-        choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill)
+        choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
     if choice.chosen is not None:
         backend_options = choice.chosen.backend_options(backend_options)
         if choice.scores:
             scores = ", ".join(f"{score.candidate.label} {score.psnr:.2f} dB" for score in choice.scores)
             timer.say(f"model on the held-back band: {scores} -> {choice.chosen.label}")
     with timer.stage("reconstruct"):
-        scene = create_backend(backend, backend_options).reconstruct(ordered)
+        scene = create_backend(backend, backend_options, memo).reconstruct(ordered)
     scene = scene.in_input_order(order)
     for dropped in scene.dropped:
         log.add(f"dropped image {dropped.index} ({dropped.name}): {dropped.reason}")

@@ -120,6 +120,29 @@ def test_the_band_test_reads_the_reference_and_the_next_photo_only(small_pair, m
     assert len(choice.scores) == 3 and set(seen) == {2}
 
 
+def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reuses_them(small_pair, monkeypatch):
+    """The band's small copies find fewer SIFT inliers than the photos: left to themselves
+    they would retry with ASIFT and test a pair matched unlike the stitch. The photos' own
+    features and matches, found for that, are the stitch's: each photo is detected once."""
+    from pis3r.reconstruct import classical, pairs
+
+    detected, band_detectors = [], []
+    original_detect, original_reconstruct = pairs.detect, classical.ClassicalReconstructor.reconstruct
+    monkeypatch.setattr(pairs, "detect", lambda image: detected.append(image.shape[:2]) or original_detect(image))
+    monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", lambda self, photos: band_detectors.append(
+        self.options.detector) or original_reconstruct(self, photos))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    whole = classical.ClassicalReconstructor(ReconstructOptions()).detector(*photos)
+    detected.clear()
+    memo = {}
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo=memo)
+    assert choice.detector == whole and set(band_detectors) == {whole}
+    assert choice.to_dict()["detector"] == whole
+    band_count = len(detected) - 2
+    classical.ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
+    assert len(detected) == band_count + 2 and band_count == 2
+
+
 def test_forcing_a_model_skips_the_band_test(small_pair):
     result = pis3r.stitch(list(small_pair), backend="classical", model="3d", depth_fill="harmonic")
     assert result.report["model_choice"]["candidates"] == []

@@ -119,6 +119,12 @@ def test_asift_matches_a_view_too_oblique_for_sift():
     R_gt, t_gt = relative_pose(Camera.identity(K, 480, 360), oblique)
     assert angle_deg(pair.R @ R_gt.T) < 1.0
     assert np.degrees(np.arccos(pair.t @ t_gt / np.linalg.norm(pair.t) / np.linalg.norm(t_gt))) < 2.0
+    # Either detector can be asked for alone; SIFT alone never computes ASIFT's features.
+    sift_only = PhotoFeatures(a.photo), PhotoFeatures(b.photo)
+    assert consistent_matches(*sift_only, "SIFT").detector == "SIFT"
+    assert all(features._affine is None for features in sift_only)
+    asift_only = consistent_matches(*sift_only, "ASIFT")
+    assert asift_only.detector == "ASIFT" and asift_only.inliers.sum() > 100
 
 
 def test_pose_refinement_jacobian_matches_finite_differences():

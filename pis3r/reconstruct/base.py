@@ -24,19 +24,22 @@ class Reconstructor(Protocol):
         ...
 
 
-def _classical(options: ReconstructOptions) -> Reconstructor:
+def _classical(options: ReconstructOptions, memo: dict | None) -> Reconstructor:
     from pis3r.reconstruct.classical import ClassicalReconstructor
 
-    return ClassicalReconstructor(options)
+    return ClassicalReconstructor(options, memo)
 
 
-def _vggt(options: ReconstructOptions) -> Reconstructor:
+def _vggt(options: ReconstructOptions, memo: dict | None) -> Reconstructor:
     from pis3r.reconstruct.vggt.backend import VGGTBackend
 
     return VGGTBackend(options)
 
 
-BACKENDS: dict[str, Callable[[ReconstructOptions], Reconstructor]] = {"classical": _classical, "vggt": _vggt}
+# Each builder takes the options and a memo of work already done on the same photo objects
+# (the classical backend's features and matches; a learned backend has none to reuse).
+BACKENDS: dict[str, Callable[[ReconstructOptions, dict | None], Reconstructor]] = {
+    "classical": _classical, "vggt": _vggt}
 # ``auto``: VGGT when its weights are found, else the weight-free classical backend.
 BACKEND_CHOICES = ("auto", *BACKENDS)
 DEFAULT_BACKEND = "auto"
@@ -51,10 +54,11 @@ def resolve_backend_name(name: str, options: ReconstructOptions) -> str:
     return "vggt" if find_weights(options.weights) is not None else "classical"
 
 
-def create_backend(name: str, options: ReconstructOptions | None = None) -> Reconstructor:
-    """Build backend ``name`` (``auto`` resolved first) with ``options``."""
+def create_backend(name: str, options: ReconstructOptions | None = None, memo: dict | None = None) -> Reconstructor:
+    """Build backend ``name`` (``auto`` resolved first) with ``options``; ``memo``: see
+    :data:`BACKENDS`."""
     options = options or ReconstructOptions()
     name = resolve_backend_name(name, options)
     if name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; choose one of {', '.join(BACKEND_CHOICES)}")
-    return BACKENDS[name](options)
+    return BACKENDS[name](options, memo)

@@ -30,7 +30,7 @@ from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
 from pis3r.reconstruct.local_warp import fit_local_warp
-from pis3r.reconstruct.pairs import PairGeometry, PhotoFeatures, consistent_matches, estimate_pair
+from pis3r.reconstruct.pairs import ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches, estimate_pair
 from pis3r.reconstruct.propagate import propagate_inverse_depth
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import DroppedView, Scene, View
@@ -175,6 +175,17 @@ class ClassicalReconstructor:
             failures[j] += "; nor does it overlap any other registered image"
         return warnings
 
+    def detector(self, ref: Photo, other: Photo) -> str:
+        """``SIFT`` or ``ASIFT``: the features that match ``ref`` and ``other``; both are
+        memoised, so a reconstruction of the same photo objects with this memo reuses them."""
+        cv2.setRNGSeed(0)
+        return self._consistent_matches(*self._features([ref, other])).detector
+
+    def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures) -> ConsistentMatches:
+        detector = self.options.detector
+        return self._memoised(("matches", id(ref.photo), id(other.photo), detector),
+                              lambda: consistent_matches(ref, other, detector))
+
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
         cv2.setRNGSeed(0)
@@ -194,7 +205,7 @@ class ClassicalReconstructor:
                       source: str = "", focal_is_final: bool = False, named: bool = False) -> PairGeometry:
         """Cameras and model of one pair, no depth (:func:`pis3r.reconstruct.pairs.estimate_pair`);
         ``focal_ref`` (from ``source``) is the reference's known focal, if any."""
-        found = self._memoised(("matches", id(ref.photo), id(other.photo)), lambda: consistent_matches(ref, other))
+        found = self._consistent_matches(ref, other)
         if len(found.matches) < MIN_MATCHES:
             raise NotEnoughOverlapError(
                 f"these images do not overlap enough to stitch: {len(found.matches)} matches"

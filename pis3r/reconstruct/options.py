@@ -18,6 +18,11 @@ RECONSTRUCT_MODELS = ("auto", "homography", "apap", "3d")
 # little parallax leave the focal weakly determined, and a wrong self-calibration bends the
 # extension; which rule predicts the picture better is for the held-back band to say.
 FOCAL_RULES = ("calibrated", "prior")
+# Which features make a pair's matches: ``auto`` SIFT, with ASIFT where SIFT finds too few
+# epipolar inliers (:func:`pis3r.reconstruct.pairs.consistent_matches`); ``SIFT`` or ``ASIFT``
+# alone. The held-back band test uses the detector the whole photos used: its small copies
+# find fewer SIFT inliers and would otherwise test a pair matched differently from the stitch.
+FEATURE_DETECTORS = ("auto", "SIFT", "ASIFT")
 
 
 @dataclass(frozen=True)
@@ -32,7 +37,8 @@ class ReconstructOptions:
     where only one view sees the scene (:data:`pis3r.reconstruct.propagate.DEPTH_FILLS`);
     ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`;
     ``fill_reference``: whether the reference view's depth is filled where the other views do
-    not see it (the held-back band test renders only the other views: there it is not).
+    not see it (the held-back band test renders only the other views: there it is not);
+    ``detector``: one of :data:`FEATURE_DETECTORS`.
     """
 
     focal: float | None = None
@@ -43,3 +49,4 @@ class ReconstructOptions:
     model: str = "auto"
     focal_rule: str = "calibrated"
     fill_reference: bool = True
+    detector: str = "auto"

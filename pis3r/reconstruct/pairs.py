@@ -90,17 +90,24 @@ class ConsistentMatches:
     detector: str
 
 
-def consistent_matches(a: PhotoFeatures, b: PhotoFeatures) -> ConsistentMatches:
-    """SIFT matches of ``a`` in ``b`` and their epipolar inliers; when fewer than
-    ``FEW_INLIERS``, ASIFT's instead if it finds more, and at least ``MIN_AFFINE_INLIERS``."""
+def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto") -> ConsistentMatches:
+    """Matches of ``a`` in ``b`` and their epipolar inliers. ``detector`` ``auto``: SIFT's;
+    when fewer than ``FEW_INLIERS``, ASIFT's instead if it finds more, and at least
+    ``MIN_AFFINE_INLIERS``. ``SIFT`` or ``ASIFT``: that detector's alone."""
     w, h = a.photo.width, a.photo.height
-    found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
-    if found.inliers.sum() >= FEW_INLIERS:
-        return found
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
-    affine = _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
-    count = affine.inliers.sum()
-    return affine if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
+
+    def affine() -> ConsistentMatches:
+        return _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
+
+    if detector == "ASIFT":
+        return affine()
+    found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
+    if detector == "SIFT" or found.inliers.sum() >= FEW_INLIERS:
+        return found
+    retry = affine()
+    count = retry.inliers.sum()
+    return retry if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
 
 
 def _epipolar(matches: Matches, width: int, height: int, detector: str) -> ConsistentMatches:

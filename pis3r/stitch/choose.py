@@ -6,7 +6,9 @@ way or another. Thresholds on a parallax level cannot say which one predicts the
 part best. The pair can: a band of the reference inside its border (``BAND_FRACTION`` of
 each side) is held back, each candidate stitches it from the inner part plus the other
 views, at a reduced working size, and is scored against the reference's true pixels there.
-The best candidate makes the real stitch; every score goes into ``report.json``.
+The best candidate makes the real stitch; every score goes into ``report.json``. The band's
+copies are matched with the features the whole photos are (SIFT, or ASIFT where SIFT finds
+too few consistent matches): the band tests the pair as the stitch will see it.
 
 The band score is the mean of two PSNRs (dB): one over the part of the band that any
 candidate reaches (what no view sees says nothing about the models), where pixels a
@@ -116,17 +118,20 @@ class BandScore:
 
 @dataclass(frozen=True)
 class ModelChoice:
-    """The candidate that makes the stitch, and every band score (empty when nothing was
-    to choose: a forced model, or a backend without a choice)."""
+    """The candidate that makes the stitch, every band score (empty when nothing was to
+    choose: a forced model, or a backend without a choice) and the features the band's
+    copies were matched with (``detector``; empty without a band test)."""
 
     chosen: Candidate | None
     scores: tuple[BandScore, ...] = ()
+    detector: str = ""
 
     def to_dict(self) -> dict:
         return {
             "chosen": self.chosen.to_dict() if self.chosen else None,
             "band_fraction": BAND_FRACTION,
             "work_side": BAND_WORK_SIDE,
+            "detector": self.detector or None,
             "candidates": [score.to_dict() for score in self.scores],
         }
 
@@ -148,14 +153,19 @@ def candidates(model: str, depth_fill: str) -> list[Candidate]:
 
 
 def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, model: str = DEFAULT_MODEL,
-                 depth_fill: str = DEFAULT_DEPTH_FILL_CHOICE) -> ModelChoice:
+                 depth_fill: str = DEFAULT_DEPTH_FILL_CHOICE, memo: dict | None = None) -> ModelChoice:
     """Score every allowed candidate on the held-back band of ``photos[0]`` (the reference)
     and return the best. Only the classical backend has a choice (learned backends predict
     one 3-D scene); with one candidate no band test runs. If no candidate can stitch the
-    band, ``chosen`` is None: the backend decides."""
+    band, ``chosen`` is None: the backend decides. ``memo``: that of the reconstruction of
+    ``photos`` that will make the stitch (:class:`ClassicalReconstructor`): the features
+    and matches of the first two photos, which say which detector the band uses, are
+    computed into it once."""
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
+    detector = ClassicalReconstructor(base, memo).detector(photos[0], photos[1])
+    base = replace(base, detector=detector)
     # The model is chosen once per stitch: on the reference and the next photo, so the test
     # costs the same for two photos or eleven.
     small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
@@ -176,8 +186,8 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     )
     best = best_score(scores)
     if not math.isfinite(scores[best].psnr):
-        return ModelChoice(None, scores)
-    return ModelChoice(scores[best].tested, scores)
+        return ModelChoice(None, scores, detector)
+    return ModelChoice(scores[best].tested, scores, detector)
 
 
 def best_score(scores: tuple[BandScore, ...]) -> int:
