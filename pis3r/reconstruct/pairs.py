@@ -3,7 +3,9 @@ it, the focal and the relative pose exported for it.
 
 1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix; with fewer than
    ``FEW_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
-   inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches).
+   inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches). ASIFT
+   detects on a copy at most 640 px long: its inliers are moved to where their patches
+   correlate on the photos themselves (:func:`pis3r.features.refine_matches`).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
 3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
@@ -31,7 +33,8 @@ import numpy as np
 
 from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
-from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
+from pis3r.features import (AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, refine_matches,
+                            to_gray_u8)
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
@@ -98,7 +101,12 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
     def affine() -> ConsistentMatches:
-        return _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
+        found = _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
+        # ASIFT's points are found on small copies: put the inliers back on the photos' pixels.
+        refined = refine_matches(a.photo.pixels, b.photo.pixels, found.matches.subset(found.inliers))
+        pts_b = found.matches.pts_b.copy()
+        pts_b[found.inliers] = refined.pts_b
+        return replace(found, matches=Matches(found.matches.pts_a, pts_b))
 
     if detector == "ASIFT":
         return affine()
