@@ -316,25 +316,30 @@ def refine_matches(image_a: np.ndarray, image_b: np.ndarray, matches: Matches) -
     from scipy.spatial import cKDTree
 
     _, nearest = cKDTree(matches.pts_a).query(matches.pts_a, REFINE_NEIGHBOURS)
+    # The patches of a are the same in every pass; flat ones (None) locate nothing.
+    side = 2 * REFINE_HALF_SIZE + 1
+    templates = [cv2.getRectSubPix(gray_a, (side, side), tuple(point)) for point in matches.pts_a]
+    templates = [template if float(template.std()) >= 1.0 else None for template in templates]
     for _ in range(REFINE_PASSES):
-        matches = Matches(matches.pts_a, _refine_pass(gray_a, gray_b, matches, nearest))
+        matches = Matches(matches.pts_a, _refine_pass(templates, gray_b, matches, nearest))
     return matches
 
 
-def _refine_pass(gray_a: np.ndarray, gray_b: np.ndarray, matches: Matches, nearest: np.ndarray) -> np.ndarray:
-    """One pass of :func:`refine_matches` on float32 grey images: the refined ``pts_b``
-    ``(N, 2)``; ``nearest`` ``(N, REFINE_NEIGHBOURS)``: each match's neighbours in a."""
+def _refine_pass(templates: list[np.ndarray | None], gray_b: np.ndarray, matches: Matches,
+                 nearest: np.ndarray) -> np.ndarray:
+    """One pass of :func:`refine_matches`: the refined ``pts_b`` ``(N, 2)``. ``templates``: each
+    match's float32 grey patch of a (``None``: flat); ``gray_b``: float32 grey b; ``nearest``
+    ``(N, REFINE_NEIGHBOURS)``: each match's neighbours in a."""
     pts_a, pts_b = matches.pts_a, matches.pts_b.copy()
     r, s = REFINE_HALF_SIZE, REFINE_SEARCH_PX
     size = 2 * (r + s) + 1
-    for i, near in enumerate(nearest):
+    for i, (near, template) in enumerate(zip(nearest, templates)):
+        if template is None:
+            continue
         design = np.hstack([pts_a[near] - pts_a[i], np.ones((len(near), 1))])
         solution, _, rank, _ = np.linalg.lstsq(design, matches.pts_b[near] - matches.pts_b[i], rcond=None)
         linear = solution[:2].T
         if rank < 3 or np.linalg.det(linear) <= 0.0:
-            continue
-        template = cv2.getRectSubPix(gray_a, (2 * r + 1, 2 * r + 1), tuple(pts_a[i]))
-        if float(template.std()) < 1.0:
             continue
         # b resampled on a's pixel grid around the match: window pixel (u, v) is b at
         # pts_b + linear @ (u - r - s, v - r - s).
