@@ -14,6 +14,7 @@ The pipeline, one stage per module: read (:mod:`pis3r.io`) -> reconstruct
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -37,6 +38,7 @@ from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.render import Canvas, render_to_canvas
+from pis3r.warmup import warm_up_in_background
 
 # Inputs above this are downscaled before anything else (memory and time grow
 # with pixels; the geometry does not need more).
@@ -63,6 +65,9 @@ def stitch(
     options = (options or StitchOptions()).replace(**overrides)
     timer = StageTimer(quiet=quiet)
     log = WarningLog(timer)
+    if options.backend != "vggt":
+        # The classical backend's one-off costs, paid while the photos are decoded and matched.
+        warm_up_in_background()
     with log.capture():
         with timer.stage("read images"):
             photos = read_photos(images, log)
@@ -85,17 +90,28 @@ def read_photos(images: Sequence[io.ImageLike], log: WarningLog) -> list[io.Phot
     """Decode inputs; downscale any above ``MAX_INPUT_PIXELS`` (and say so, once per image)."""
     if len(images) < 2:
         raise InputError(f"need at least 2 images to stitch, got {len(images)}")
-    photos = []
-    for index, source in enumerate(images):
-        name = str(source) if isinstance(source, (str, os.PathLike)) else f"image_{index}"
-        photo = io.read_image(source, name=Path(name).name)
-        width, height = photo.width, photo.height
-        if width * height > MAX_INPUT_PIXELS:
-            photo = io.downscaled(photo, (MAX_INPUT_PIXELS / (width * height)) ** 0.5)
-            log.add(f"{photo.name}: {width}x{height} is above {MAX_INPUT_PIXELS // 1_000_000} MP; "
-                    f"downscaled to {photo.width}x{photo.height}")
-        photos.append(photo)
-    return photos
+    names = [Path(str(source) if isinstance(source, (str, os.PathLike)) else f"image_{index}").name
+             for index, source in enumerate(images)]
+    # Decoding runs in OpenCV and Pillow with the GIL released: two photos at a time, each
+    # downscaled by its own thread so that no more than two are held at full size. The first
+    # unreadable input, in input order, is the one reported.
+    with ThreadPoolExecutor(2) as pool:
+        read = list(pool.map(_read_within_limit, images, names))
+    for _, note in read:
+        if note:
+            log.add(note)
+    return [photo for photo, _ in read]
+
+
+def _read_within_limit(source: io.ImageLike, name: str) -> tuple[io.Photo, str]:
+    """One input decoded, downscaled to ``MAX_INPUT_PIXELS`` if above, and the line that says so."""
+    photo = io.read_image(source, name=name)
+    width, height = photo.width, photo.height
+    if width * height <= MAX_INPUT_PIXELS:
+        return photo, ""
+    photo = io.downscaled(photo, (MAX_INPUT_PIXELS / (width * height)) ** 0.5)
+    return photo, (f"{photo.name}: {width}x{height} is above {MAX_INPUT_PIXELS // 1_000_000} MP; "
+                   f"downscaled to {photo.width}x{photo.height}")
 
 
 def reference_first(count: int, ref: int | str) -> list[int]:

@@ -61,6 +61,16 @@ def test_large_inputs_are_downscaled_and_the_report_says_so(small_pair, monkeypa
     assert view.shape[0] * view.shape[1] <= 20_000
 
 
+def test_of_several_unreadable_inputs_the_first_in_input_order_is_reported(small_pair, tmp_path):
+    # The photos are decoded two at a time; the empty file fails first, but it comes second.
+    good, corrupt, empty = tmp_path / "good.png", tmp_path / "corrupt.jpg", tmp_path / "empty.jpg"
+    Image.fromarray(small_pair[0]).save(good)
+    corrupt.write_bytes(b"\xff\xd8 not a JPEG" * 1000)
+    empty.write_bytes(b"")
+    with pytest.raises(pis3r.Pis3rError, match="corrupt.jpg"):
+        pis3r.stitch([good, corrupt, empty], backend="classical")
+
+
 def test_reference_index_and_report(small_pair):
     result = pis3r.stitch(list(small_pair), ref=1, backend="classical", blend="none")
     assert result.ref_index == 1

@@ -6,7 +6,7 @@ import pytest
 from PIL import Image, ImageOps
 
 from pis3r.errors import InputError, OutputError
-from pis3r.io import encode_ply, read_image, to_float_rgb, write_bytes, write_png
+from pis3r.io import encode_ply, read_image, to_float_rgb, to_uint8, write_bytes, write_png
 
 
 def _pattern(h=20, w=30):
@@ -107,3 +107,14 @@ def test_ply_is_binary_little_endian_with_colours():
     xyz = np.frombuffer(body[:12], "<f4")
     np.testing.assert_array_equal(xyz, [1, 2, 3])
     assert list(body[12:]) == [255, 128, 0]
+
+
+def test_to_uint8_rounds_to_the_nearest_level_and_clips_whatever_the_input_dtype():
+    levels = np.array([[-0.2, 0.0, 0.3 / 255, 0.7 / 255, 1.6 / 255, 254.4 / 255, 254.6 / 255, 1.0, 1.3]])
+    expected = np.array([[0, 0, 0, 1, 2, 254, 255, 255, 255]], np.uint8)
+    for dtype in (np.float32, np.float64):
+        np.testing.assert_array_equal(to_uint8(levels.astype(dtype)), expected)
+    np.testing.assert_array_equal(to_uint8(np.array([[False, True]])), np.array([[0, 255]], np.uint8))
+    image = np.random.default_rng(0).random((4, 5, 3), dtype=np.float32)
+    assert to_uint8(image).shape == (4, 5, 3)
+    assert image.max() < 1.0  # the input is left as it was

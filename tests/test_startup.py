@@ -30,6 +30,17 @@ from pis3r.reconstruct.options import ReconstructOptions
 print(resolve_backend_name("auto", ReconstructOptions()), "huggingface_hub.file_download" in sys.modules)
 """
 
+WARM_UP_IN_BACKGROUND = r"""
+import sys
+from pis3r import gl
+from pis3r.warmup import CLASSICAL_MODULES, warm_up_in_background
+
+before = [name in sys.modules for name in CLASSICAL_MODULES] + ["context" in gl._state]
+warm_up_in_background().join()
+print(any(before), all(name in sys.modules for name in CLASSICAL_MODULES), gl._state["context"] is not None,
+      warm_up_in_background())
+"""
+
 
 def _python(*args: str) -> str:
     proc = subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=300)
@@ -39,6 +50,13 @@ def _python(*args: str) -> str:
 
 def test_a_classical_stitch_on_the_cpu_never_imports_torch():
     assert _python("-c", STITCH_WITHOUT_TORCH).split() == ["False", "True"]
+
+
+def test_the_solvers_and_the_gl_context_a_stitch_needs_are_made_on_a_thread_once():
+    """The classical path imports scipy's solvers and creates the OpenGL context on a thread
+    while OpenCV finds features: once it ends both are there, and a second call has nothing
+    left to start."""
+    assert _python("-c", WARM_UP_IN_BACKGROUND).split() == ["False", "True", "True", "None"]
 
 
 def test_looking_for_vggt_weights_in_an_empty_cache_imports_no_download_machinery(tmp_path, monkeypatch):

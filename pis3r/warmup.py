@@ -1,0 +1,49 @@
+"""A process's one-off costs, paid on a thread while the first stage runs (issue 12).
+
+The classical backend's first stage, finding features, spends about half a second on a 1 MP
+pair inside OpenCV with the GIL released. Meanwhile a thread builds OpenCV's CIE Lab tables
+(0.1 s at a process's first Lab conversion, which the depth fill's edge weights make),
+imports the solvers the later stages call (scipy's: about 0.5 s on 2 cores) and creates the
+headless OpenGL context the renderer draws with (EGL on Mesa: 0.1-0.3 s). A stage that needs
+one of them before the thread is done waits for it (OpenCV's own lock, Python's import lock,
+:mod:`pis3r.gl`'s lock): results do not change, only when the cost is paid.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+
+import cv2
+import numpy as np
+
+from pis3r import gl
+
+# What the classical backend's stages import on first use: pose and exposure fits, depth fill,
+# match refinement.
+CLASSICAL_MODULES = ("scipy.optimize", "scipy.sparse.linalg", "scipy.spatial")
+
+_started = threading.Lock()
+
+
+def warm_up_in_background(modules: tuple[str, ...] = CLASSICAL_MODULES) -> threading.Thread | None:
+    """Start the warm-up (module docstring), importing ``modules``, on a thread and return it;
+    None when a warm-up has started in this process already. A failure is left to the stage
+    that needs the module or the context, which reports it."""
+    if not _started.acquire(blocking=False):
+        return None
+
+    def warm_up() -> None:
+        cv2.cvtColor(np.zeros((1, 1, 3), np.float32), cv2.COLOR_RGB2LAB)
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except ImportError:
+                break
+        gl.shared_context()
+
+    # Not a daemon: a process that ends meanwhile waits for it rather than stopping it inside
+    # an import or an EGL call.
+    thread = threading.Thread(target=warm_up, name="pis3r-warm-up")
+    thread.start()
+    return thread
