@@ -92,13 +92,14 @@ def to_float_rgb(array: np.ndarray, name: str = "image") -> np.ndarray:
     a = a[..., :3]
     if a.shape[0] < 2 or a.shape[1] < 2:
         raise InputError(f"{name}: image is empty ({a.shape[1]}x{a.shape[0]} pixels)")
-    if a.dtype == np.uint8:
-        out = a.astype(np.float32) / 255.0
-    elif a.dtype == np.uint16:
-        out = a.astype(np.float32) / 65535.0
-    elif a.dtype == bool:
+    if a.dtype == bool or np.issubdtype(a.dtype, np.unsignedinteger):
+        # In [0, 1] by construction: scaled in place on one copy, nothing to clip (a 12 MP
+        # photo's two extra float passes cost about 0.2 s).
         out = a.astype(np.float32)
-    elif np.issubdtype(a.dtype, np.integer):
+        if a.dtype != bool:
+            out /= float(np.iinfo(a.dtype).max)
+        return out
+    if np.issubdtype(a.dtype, np.integer):
         out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
     elif np.issubdtype(a.dtype, np.floating):
         out = a.astype(np.float32)

@@ -31,7 +31,7 @@ def test_recovers_gain_and_falloff_of_a_vignetted_pair():
     t2 = np.linspace(0, t2_max, 9)
     np.testing.assert_allclose(fitted.vignetting(t2), 1 - 0.6 * t2 + 0.2 * t2 ** 2, atol=0.01)
     # The view's colours become the reference's.
-    np.testing.assert_allclose(view * fitted.factor(t2_ref, t2_view), reference, atol=0.01)
+    np.testing.assert_allclose(fitted.apply(view.astype(np.float32), t2_ref, t2_view), reference, atol=0.01)
 
 
 def test_a_falloff_needs_a_spread_of_radii_else_the_median_gain():
@@ -65,7 +65,8 @@ def test_a_falloff_darker_than_any_lens_is_refused(monkeypatch):
 def test_falloff_is_held_beyond_the_widest_angle_seen():
     lens = Exposure(np.ones(3), (-0.5, 0.0), 0.4)
     assert lens.vignetting(np.array(2.0)) == pytest.approx(0.8)
-    np.testing.assert_allclose(lens.factor(np.array([3.0]), np.array([0.0])), [[0.8, 0.8, 0.8]], rtol=1e-6)
+    np.testing.assert_allclose(lens.apply(np.ones((1, 3), np.float32), np.array([3.0]), np.array([0.0])),
+                               [[0.8, 0.8, 0.8]], rtol=1e-6)
 
 
 @pytest.mark.parametrize("bad", ["few", "clipped"])

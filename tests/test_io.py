@@ -80,6 +80,20 @@ def test_array_conversion_rules():
         to_float_rgb(np.full((4, 4, 3), np.nan, np.float32))
 
 
+def test_unsigned_integer_images_scale_exactly_by_their_type_maximum():
+    """Every uint8 and uint16 level maps to level / max in float32, alpha dropped, as one
+    contiguous array; booleans map to 0 and 1."""
+    levels8 = np.arange(256, dtype=np.uint8)
+    rgba = np.repeat(np.stack([levels8, levels8[::-1], levels8, np.zeros_like(levels8)], -1)[None], 2, axis=0)
+    converted = to_float_rgb(rgba)
+    assert converted.dtype == np.float32 and converted.flags.c_contiguous
+    np.testing.assert_array_equal(converted[0, :, 0], np.arange(256, dtype=np.float32) / np.float32(255))
+    np.testing.assert_array_equal(converted[0, :, 1], converted[0, ::-1, 0])
+    levels16 = np.repeat(np.arange(0, 65536, 257, dtype=np.uint16)[None], 2, axis=0)
+    np.testing.assert_array_equal(to_float_rgb(levels16)[0, :, 2], levels16[0].astype(np.float32) / np.float32(65535))
+    np.testing.assert_array_equal(to_float_rgb(np.eye(3, dtype=bool))[..., 0], np.eye(3, dtype=np.float32))
+
+
 def test_a_float_image_resized_bicubically_keeps_its_scale():
     # Bicubic upscaling of a [0, 1] image overshoots past 1 at sharp edges: still [0, 1], not 0..255.
     edge = np.zeros((8, 8, 3), np.float32)

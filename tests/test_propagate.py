@@ -6,6 +6,7 @@ import pytest
 from pis3r.reconstruct.propagate import (
     DEPTH_FILLS,
     _grid_laplacian,
+    anchored_solve,
     dominant_planes,
     propagate_inverse_depth,
     screened_solve,
@@ -84,3 +85,19 @@ def test_screened_solve_solves_the_grid_system():
     system = np.diag(weight + 1e-9) + laplacian.toarray()
     expected = np.linalg.solve(system, weight[:, None] * seeds)
     assert np.allclose(solved, expected, rtol=1e-6, atol=1e-9)
+
+
+def test_anchored_solve_matches_the_factorisation_and_falls_back_to_it(monkeypatch):
+    """With a prior weight at every pixel, conjugate gradients give the factorised answer;
+    when they cannot converge in the iterations allowed, the system is factorised instead."""
+    from pis3r.reconstruct import propagate
+
+    rng = np.random.default_rng(4)
+    guide = rng.random((60, 80, 3)).astype(np.float32)
+    laplacian = _grid_laplacian(guide, 0.08)
+    weight = np.where(rng.random(60 * 80) < 0.1, rng.random(60 * 80), 0.0) + 0.02
+    target = rng.random(60 * 80)
+    expected = screened_solve(laplacian, target[:, None], weight, 1.0)[:, 0]
+    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target), expected, rtol=1e-7)
+    monkeypatch.setattr(propagate, "CG_MAX_ITERATIONS", 1)
+    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target), expected, rtol=1e-12)

@@ -317,6 +317,24 @@ def test_numpy_and_gl_rasterisers_agree():
     assert np.median(np.abs(gl.image[same] - numpy.image[same])) < 1e-4
 
 
+def test_gl_renders_a_canvas_in_strips_as_it_renders_it_whole(monkeypatch):
+    """A framebuffer smaller than the canvas: strips, each read into its own rows, put the
+    same layer, depth and source pixel everywhere (empty pixels: layer -1, infinitely far)."""
+    if not raster.gl_available():
+        pytest.skip("no EGL context on this machine: only the numpy rasteriser runs here")
+    _, scene = _planes()
+    whole = render_to_canvas(scene, raster_backend="gl")
+    height, width = whole.source.shape
+    monkeypatch.setattr(raster, "GL_TILE_PIXELS", width * (height // 5))
+    strips = render_to_canvas(scene, raster_backend="gl")
+    assert (~whole.occupied).any()
+    assert (strips.source == whole.source).mean() > 0.999
+    same = strips.source == whole.source
+    np.testing.assert_allclose(strips.depth[same], whole.depth[same], rtol=1e-5)
+    assert np.isinf(strips.depth[~strips.occupied]).all()
+    assert np.abs(strips.image[same] - whole.image[same]).max() < 1e-3
+
+
 def read_mesh_ply_strict(data: bytes):
     """Parse a binary little-endian PLY with xyz + rgb vertices and triangle faces, failing
     on anything that deviates from that format."""

@@ -316,12 +316,10 @@ class ClassicalReconstructor:
         if not fill_ref:
             unfilled_a = View(ref.pixels, camera_a, measured_a, (measured_a > 0).astype(np.float32), ref.name)
             return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
-        # The two views' depth fills are independent sparse solves (SuperLU releases the
-        # GIL): one thread each.
-        with ThreadPoolExecutor(2) as pool:
-            view_b = pool.submit(self._filled_view, other, img_b, meas_b, camera_b)
-            view_a = self._filled_view(ref, img_a, meas_a, camera_a)
-            return view_a, view_b.result(), measured_a
+        # One view after the other: each fill keeps both cores busy already (its two
+        # factorisations run side by side), and two fills at once only contend for them.
+        view_a = self._filled_view(ref, img_a, meas_a, camera_a)
+        return view_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
 
     def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera) -> View:
         """The view of ``photo`` with the depth measured on its working ``image`` filled

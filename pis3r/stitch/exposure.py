@@ -64,12 +64,16 @@ class Exposure:
         out += np.float32(1.0)
         return out
 
-    def factor(self, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
-        """``(..., 3)`` float32 multipliers of view colours at pixels whose squared tangents are
-        ``t2_ref`` in the reference camera and ``t2_view`` in the view (same shape)."""
+    def apply(self, colours: np.ndarray, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
+        """View colours ``(..., 3)`` float32 brought to the reference, in place (and returned):
+        at pixels whose squared tangents are ``t2_ref`` in the reference camera and ``t2_view``
+        in the view (both ``(...)``), multiplied by ``V(t2_ref) / V(t2_view)`` and the gain."""
         ratio = self.vignetting(t2_ref)
         ratio /= self.vignetting(t2_view)
-        return ratio[..., None] * self.gain.astype(np.float32)
+        # One channel of ratios, then the three gains: no (..., 3) temporary of a whole canvas.
+        colours *= ratio[..., None]
+        colours *= self.gain.astype(np.float32)
+        return colours
 
     def to_dict(self) -> dict:
         return {"gain": [round(float(g), 4) for g in self.gain], "falloff": [round(c, 4) for c in self.falloff],

@@ -7,7 +7,7 @@ its depth and its perspective-correct attribute (interpolated linearly in 3-D, i
 ``uv / z`` and ``1 / z`` linearly on the canvas).
 
 - ``gl``: moderngl on an EGL context: Mesa's llvmpipe on a CPU, the GPU's driver where
-  there is one. Depth + attribute go to one RGBA32F target, rendered in tiles.
+  there is one. Depth + attribute go to one RGBA32F target, rendered in strips.
 - ``numpy``: the same rule in numpy (bounding-box candidates, edge functions,
   ``np.minimum.at`` z-buffer), for machines without EGL. Pixels on a shared edge may
   go to either neighbour; that is the only difference between the two.
@@ -25,8 +25,10 @@ from pis3r.errors import Pis3rError
 from pis3r.gl import current_context, shared_context, unavailable_reason
 
 RASTER_BACKENDS = ("auto", "gl", "numpy")
-# Largest square tile rendered at once by OpenGL (bounds the framebuffer's memory).
-GL_TILE = 4096
+# Pixels rendered at once by OpenGL (bounds the framebuffer's memory: 16 bytes each). The
+# tiles are strips as wide as the canvas where the driver allows, so each is read straight
+# into its rows of the result.
+GL_TILE_PIXELS = 4096 * 4096
 # Candidate pixels evaluated at once by the numpy rasteriser (bounds its memory).
 NUMPY_CHUNK = 4_000_000
 
@@ -131,8 +133,10 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
         ibo = context.buffer(np.ascontiguousarray(batch.faces, dtype=np.int32).tobytes())
         vao = context.vertex_array(program, [(vbo, "2f 1f 2f", "in_xy", "in_z", "in_uv")], ibo, index_element_size=4)
         arrays.append((index, vao, vbo, ibo))
-    out = np.zeros((height, width, 4), np.float32)
-    tile_w, tile_h = min(width, GL_TILE), min(height, GL_TILE)
+    out = np.empty((height, width, 4), np.float32)
+    max_side = min(context.info["GL_MAX_RENDERBUFFER_SIZE"], *context.info["GL_MAX_VIEWPORT_DIMS"])
+    tile_w = min(width, max_side)
+    tile_h = min(height, max_side, max(1, GL_TILE_PIXELS // tile_w))
     color = context.renderbuffer((tile_w, tile_h), components=4, dtype="f4")
     depth = context.depth_renderbuffer((tile_w, tile_h))
     framebuffer = context.framebuffer(color_attachments=[color], depth_attachment=depth)
@@ -144,7 +148,8 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
             for x0 in range(0, width, tile_w):
                 w, h = min(tile_w, width - x0), min(tile_h, height - y0)
                 framebuffer.viewport = (0, 0, w, h)
-                framebuffer.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+                # Empty pixels: no layer (-1 below), infinitely far.
+                framebuffer.clear(0.0, 0.0, np.inf, 0.0, depth=1.0)
                 program["tile"].value = (x0, y0, w, h)
                 for index, vao, _, _ in arrays:
                     program["layer"].value = float(index)
@@ -160,9 +165,10 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
         for _, vao, vbo, ibo in arrays:
             vao.release(), vbo.release(), ibo.release()
         framebuffer.release(), color.release(), depth.release()
-    layer = np.rint(out[..., 3]).astype(np.int16) - 1
-    hit = layer >= 0
-    return Raster(layer=layer, z=np.where(hit, out[..., 2], np.float32(np.inf)), uv=out[..., :2])
+    # The shader writes layer + 1 as a float, exactly: the conversion needs no rounding.
+    layer = out[..., 3].astype(np.int16)
+    layer -= 1
+    return Raster(layer=layer, z=out[..., 2], uv=out[..., :2])
 
 
 def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raster:

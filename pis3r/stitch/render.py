@@ -283,13 +283,15 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
                             borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
-            sampled *= exposure.factor(grid_squared_tangents(canvas_K, *box),
-                                       squared_tangents(uv, scene.views[index].camera.K))
+            exposure.apply(sampled, grid_squared_tangents(canvas_K, *box),
+                           squared_tangents(uv, scene.views[index].camera.K))
         elif (exposure.gain != 1).any():
             cv2.multiply(sampled, tuple(float(g) for g in exposure.gain) + (0.0,), dst=sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
         np.clip(sampled, 0.0, 1.0, out=sampled)
-        np.copyto(image[box], sampled, where=mine[box][..., None])
+        # OpenCV's masked copy, into the canvas's rows and columns in place: several times
+        # faster than numpy's copyto(where=) with a broadcast mask.
+        cv2.copyTo(sampled, mine[box].view(np.uint8), image[box])
     return image
 
 
