@@ -316,10 +316,9 @@ class ClassicalReconstructor:
         if not fill_ref:
             unfilled_a = View(ref.pixels, camera_a, measured_a, (measured_a > 0).astype(np.float32), ref.name)
             return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
-        # One view after the other: each fill keeps both cores busy already (its two
-        # factorisations run side by side), and two fills at once only contend for them.
-        view_a = self._filled_view(ref, img_a, meas_a, camera_a)
-        return view_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
+        # One view after the other: each fill's two factorisations already use both cores.
+        filled_a = self._filled_view(ref, img_a, meas_a, camera_a)
+        return filled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
 
     def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera) -> View:
         """The view of ``photo`` with the depth measured on its working ``image`` filled
@@ -329,8 +328,9 @@ class ClassicalReconstructor:
         idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
         dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.options.depth_fill)
         dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
-        depth = np.where(_depth_edges(dense), 0.0, 1.0 / dense).astype(np.float32)
-        conf = np.where(depth > 0, conf, 0.0).astype(np.float32)
+        depth = np.divide(1.0, dense, dtype=np.float32)  # in place after: 12 MP temporaries are costly
+        depth[_depth_edges(dense)] = 0.0
+        conf[~(depth > 0)] = 0.0  # the fill's own float32 array (or its resized copy)
         return View(photo.pixels, camera, depth, conf, photo.name)
 
 
@@ -374,7 +374,10 @@ def _depth_edges(idepth: np.ndarray) -> np.ndarray:
     """``(H, W)`` bool: pixels whose inverse depth jumps by more than DEPTH_EDGE_JUMP to a neighbour."""
     local_max = cv2.dilate(idepth, np.ones((3, 3), np.uint8))
     local_min = cv2.erode(idepth, np.ones((3, 3), np.uint8))
-    return (local_max - local_min) > DEPTH_EDGE_JUMP * local_max
+    # max - min > JUMP * max in place, as min - max < -JUMP * max: exactly the same comparison.
+    local_min -= local_max
+    local_max *= -DEPTH_EDGE_JUMP
+    return local_min < local_max
 
 
 def _plane_depth(K: np.ndarray, n: np.ndarray, d: float, width: int, height: int) -> np.ndarray:

@@ -58,8 +58,11 @@ def fill_holes(
     equal distance).
     """
     hole = hole_mask(occupied, radius)
-    out = image.copy()
-    np.copyto(out, np.asarray(background, np.float32), where=(~occupied & ~hole)[..., None])
+    # The background painted everywhere, the image copied over it where it is kept (OpenCV's
+    # masked copy: several times numpy's copyto(where=) with a broadcast mask).
+    out = np.empty_like(image)
+    out[...] = np.asarray(background, np.float32)
+    cv2.copyTo(image, (occupied | hole).view(np.uint8), out)
     if hole.any():
         # Telea treats every unmasked pixel as known colour: mark the empty
         # background near the holes as unknown too, so it does not bleed in.
