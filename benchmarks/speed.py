@@ -6,17 +6,19 @@
 Every measured run is a fresh process, timed from its start to its exit (interpreter start,
 imports, reading the images, stitching, writing the outputs); its peak memory is the
 ``ru_maxrss`` that ``os.wait4`` returns for that one child (as ``/usr/bin/time -v`` does).
-Each cell is the median of ``--repeat`` runs. One table, all rows from this run:
+Each cell is the median of ``--repeat`` runs; the runs a ratio compares are interleaved (one of
+each in turn), since a shared machine's speed drifts by tens of percent over minutes. One table,
+all rows from this run:
 
 - ``pair``: per pair of ``--data`` (folders with ``ref.*``, ``tgt.*``; default :data:`DEFAULT_PAIRS`),
   the installed ``pis3r stitch REF TGT -o DIR --backend classical --device cpu``, a script running
   ``cv2.Stitcher_create(cv2.Stitcher_PANORAMA)`` and one running the project's APAP (each reads the
-  files, stitches, writes a PNG); ratio: pis3r / OpenCV. OpenCV's refusals show as ``status N``.
+  files, stitches, writes a PNG), in turn; ratio: pis3r / OpenCV. OpenCV's refusals show as ``status N``.
 - ``MP``: pis3r on ``--scale-pair`` with both images resized to each of ``--megapixels`` MP
   (INTER_AREA down, INTER_CUBIC up; JPEG files); last column: seconds per MP.
 - ``views``: pis3r on the first N of the Strecha fountain views (``0005.jpg`` then the nearest
-  others, in index order) for each N of ``--views``; ratio: to one OpenCV run on ``lpc-eyot``
-  (its ``pair`` row); last column: seconds per view.
+  others, in index order) for each N of ``--views``; ratio: to OpenCV's Stitcher on ``lpc-eyot``,
+  run in turn with that row's (its OpenCV column); last column: seconds per view.
 - ``gpu``: when CUDA is present, pis3r with ``--device cuda`` on the scale pair (stored size)
   and on the most views.
 
@@ -125,17 +127,30 @@ def run_once(command: list[str]) -> dict:
     return {"seconds": seconds, "gb": usage.ru_maxrss / 1024**2, "rc": proc.returncode, "last": lines[-1] if lines else ""}
 
 
-def measure(command: list[str], repeat: int) -> dict:
-    """Median seconds and peak GB of ``repeat`` runs; ``ok`` only if every run exited 0."""
-    runs = [run_once(command) for _ in range(repeat)]
-    failed = [r for r in runs if r["rc"] != 0]
-    return {"seconds": statistics.median(r["seconds"] for r in runs), "gb": statistics.median(r["gb"] for r in runs),
-            "ok": not failed, "last": failed[-1]["last"] if failed else ""}
+def measure_together(commands: list[list[str]], repeat: int) -> list[dict]:
+    """Per command, the median seconds and peak GB of ``repeat`` runs (``ok`` only if every run
+    exited 0), the commands' runs taken in turn: one of each, ``repeat`` times. A shared
+    machine's speed drifts by tens of percent over minutes; interleaved, the ratios between
+    the commands are taken under the same conditions."""
+    runs: list[list[dict]] = [[] for _ in commands]
+    for _ in range(repeat):
+        for found, command in zip(runs, commands):
+            found.append(run_once(command))
+    summaries = []
+    for found in runs:
+        failed = [r for r in found if r["rc"] != 0]
+        summaries.append({"seconds": statistics.median(r["seconds"] for r in found),
+                          "gb": statistics.median(r["gb"] for r in found),
+                          "ok": not failed, "last": failed[-1]["last"] if failed else ""})
+    return summaries
 
 
-def pis3r(images: list[Path], out: Path, repeat: int, device: str = "cpu") -> dict:
-    return measure([str(PIS3R), "stitch", *map(str, images), "-o", str(out), "--backend", "classical",
-                    "--device", device], repeat)
+def pis3r_command(images: list[Path], out: Path, device: str = "cpu") -> list[str]:
+    return [str(PIS3R), "stitch", *map(str, images), "-o", str(out), "--backend", "classical", "--device", device]
+
+
+def opencv_command(ref: Path, tgt: Path, out: Path) -> list[str]:
+    return [sys.executable, "-c", _OPENCV, str(ref), str(tgt), str(out)]
 
 
 def cell(run: dict | None) -> str:
@@ -178,19 +193,16 @@ def cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-def section_pairs(data: Path, names: list[str], tmp: Path, repeat: int, values: dict) -> dict[str, dict]:
-    """The ``pair`` rows; returns OpenCV's run per pair name."""
-    opencv_runs = {}
+def section_pairs(data: Path, names: list[str], tmp: Path, repeat: int, values: dict) -> None:
+    """The ``pair`` rows: pis3r, OpenCV and APAP on each pair, their runs interleaved."""
     for name in names:
         ref, tgt = pair_files(data / name)
-        ours = pis3r([ref, tgt], tmp / "out", repeat)
-        opencv = opencv_runs[name] = measure([sys.executable, "-c", _OPENCV, str(ref), str(tgt), str(tmp / "cv.png")],
-                                             repeat)
-        apap = measure([sys.executable, "-c", _APAP, str(ref), str(tgt), str(tmp / "apap.png")], repeat)
+        ours, opencv, apap = measure_together(
+            [pis3r_command([ref, tgt], tmp / "out"), opencv_command(ref, tgt, tmp / "cv.png"),
+             [sys.executable, "-c", _APAP, str(ref), str(tgt), str(tmp / "apap.png")]], repeat)
         row(f"pair {name}", size_of(ref), ours, opencv, apap, ratio_to(ours, opencv))
         if name == "lpc-eyot":
             values["eyot_ratio"] = ratio_to(ours, opencv)
-    return opencv_runs
 
 
 def section_megapixels(photos: list[np.ndarray], label: str, megapixels: list[float], tmp: Path, repeat: int,
@@ -200,7 +212,7 @@ def section_megapixels(photos: list[np.ndarray], label: str, megapixels: list[fl
         files = [tmp / f"{mp:g}MP_{i}.jpg" for i in range(len(photos))]
         for file, photo in zip(files, photos):
             cv2.imwrite(str(file), resize_to_megapixels(photo, mp), [cv2.IMWRITE_JPEG_QUALITY, 95])
-        ours = pis3r(files, tmp / "out", repeat)
+        (ours,) = measure_together([pis3r_command(files, tmp / "out")], repeat)
         row(f"MP {label} at {mp:g} MP", size_of(files[0]), ours, per_unit=f"{ours['seconds'] / mp:.2f} s/MP")
         per_mp[mp] = ours["seconds"] / mp if ours["ok"] else None
         if ours["ok"] and mp == 6:
@@ -210,15 +222,17 @@ def section_megapixels(photos: list[np.ndarray], label: str, megapixels: list[fl
     values["mp_growth"] = growth(per_mp, 1.0)
 
 
-def section_views(folder: Path, counts: list[int], one_opencv_pair: dict | None, tmp: Path, repeat: int,
+def section_views(folder: Path, counts: list[int], opencv_pair: list[str], tmp: Path, repeat: int,
                   values: dict) -> None:
+    """The ``views`` rows; each ratio is to ``opencv_pair`` (OpenCV on one pair), its runs
+    interleaved with that row's."""
     names = [p.name for p in folder.glob("*.jpg")]
     per_view = {}
     for count in counts:
         chosen = fountain_views(names, count)
-        ours = pis3r([folder / n for n in chosen], tmp / "out", repeat)
-        ratio = ratio_to(ours, one_opencv_pair)
-        row(f"views fountain {len(chosen)}", size_of(folder / chosen[0]), ours, ratio=ratio,
+        ours, opencv = measure_together([pis3r_command([folder / n for n in chosen], tmp / "out"), opencv_pair], repeat)
+        ratio = ratio_to(ours, opencv)
+        row(f"views fountain {len(chosen)}", size_of(folder / chosen[0]), ours, opencv, ratio=ratio,
             per_unit=f"{ours['seconds'] / count:.2f} s/view")
         per_view[count] = ours["seconds"] / count if ours["ok"] else None
         if count == 11:
@@ -248,15 +262,18 @@ def main() -> None:
           f" {'ratio':>8s} {'per unit':>12s}")
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        opencv_runs = section_pairs(args.data, names, tmp, args.repeat, values)
+        section_pairs(args.data, names, tmp, args.repeat, values)
         section_megapixels([cv2.imread(str(p)) for p in scale_pair], args.scale_pair, args.megapixels, tmp,
                            args.repeat, values)
-        section_views(fountain, args.views, opencv_runs.get("lpc-eyot"), tmp, args.repeat, values)
+        section_views(fountain, args.views, opencv_command(*pair_files(args.data / "lpc-eyot"), tmp / "cv.png"), tmp,
+                      args.repeat, values)
         if cuda_available():
-            row(f"gpu pair {args.scale_pair}", size_of(scale_pair[0]), pis3r(scale_pair, tmp / "out", args.repeat, "cuda"))
+            (gpu_pair,) = measure_together([pis3r_command(scale_pair, tmp / "out", "cuda")], args.repeat)
+            row(f"gpu pair {args.scale_pair}", size_of(scale_pair[0]), gpu_pair)
             chosen = fountain_views([p.name for p in fountain.glob("*.jpg")], max(args.views, default=11))
-            row(f"gpu views fountain {len(chosen)}", size_of(fountain / chosen[0]),
-                pis3r([fountain / n for n in chosen], tmp / "out", args.repeat, "cuda"))
+            (gpu_views,) = measure_together([pis3r_command([fountain / n for n in chosen], tmp / "out", "cuda")],
+                                            args.repeat)
+            row(f"gpu views fountain {len(chosen)}", size_of(fountain / chosen[0]), gpu_views)
         else:
             print("gpu: no CUDA device present (torch.cuda.is_available() is False), no GPU rows")
     print("\n" + "\n".join(bar_lines(values)))

@@ -40,3 +40,18 @@ def test_bar_lines_pass_fail_and_not_measured():
     assert lines["eyot_ratio"].startswith("PASS") and "5.00" in lines["eyot_ratio"]
     assert lines["mp12_s"].startswith("FAIL") and "10.50" in lines["mp12_s"]
     assert lines["view_growth"].startswith("n/a")
+
+
+def test_measure_together_interleaves_the_runs_and_summarises_each_command(monkeypatch):
+    calls = []
+
+    def fake_run(command):
+        calls.append(command[0])
+        seconds = {"a": [1.0, 3.0, 2.0], "b": [10.0, 30.0, 20.0]}[command[0]][calls.count(command[0]) - 1]
+        return {"seconds": seconds, "gb": 0.5, "rc": 3 if command[0] == "b" and seconds == 30.0 else 0, "last": "x"}
+
+    monkeypatch.setattr(speed, "run_once", fake_run)
+    a, b = speed.measure_together([["a"], ["b"]], 3)
+    assert calls == ["a", "b", "a", "b", "a", "b"]
+    assert (a["seconds"], a["gb"], a["ok"]) == (2.0, 0.5, True)
+    assert (b["seconds"], b["ok"], b["last"]) == (20.0, False, "x")
