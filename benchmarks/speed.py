@@ -149,8 +149,9 @@ def pis3r_command(images: list[Path], out: Path, device: str = "cpu") -> list[st
     return [str(PIS3R), "stitch", *map(str, images), "-o", str(out), "--backend", "classical", "--device", device]
 
 
-def opencv_command(ref: Path, tgt: Path, out: Path) -> list[str]:
-    return [sys.executable, "-c", _OPENCV, str(ref), str(tgt), str(out)]
+def script_command(script: str, ref: Path, tgt: Path, out: Path) -> list[str]:
+    """One of the peers' scripts (:data:`_OPENCV`, :data:`_APAP`) on a pair, writing ``out``."""
+    return [sys.executable, "-c", script, str(ref), str(tgt), str(out)]
 
 
 def cell(run: dict | None) -> str:
@@ -198,8 +199,8 @@ def section_pairs(data: Path, names: list[str], tmp: Path, repeat: int, values: 
     for name in names:
         ref, tgt = pair_files(data / name)
         ours, opencv, apap = measure_together(
-            [pis3r_command([ref, tgt], tmp / "out"), opencv_command(ref, tgt, tmp / "cv.png"),
-             [sys.executable, "-c", _APAP, str(ref), str(tgt), str(tmp / "apap.png")]], repeat)
+            [pis3r_command([ref, tgt], tmp / "out"), script_command(_OPENCV, ref, tgt, tmp / "cv.png"),
+             script_command(_APAP, ref, tgt, tmp / "apap.png")], repeat)
         row(f"pair {name}", size_of(ref), ours, opencv, apap, ratio_to(ours, opencv))
         if name == "lpc-eyot":
             values["eyot_ratio"] = ratio_to(ours, opencv)
@@ -265,8 +266,8 @@ def main() -> None:
         section_pairs(args.data, names, tmp, args.repeat, values)
         section_megapixels([cv2.imread(str(p)) for p in scale_pair], args.scale_pair, args.megapixels, tmp,
                            args.repeat, values)
-        section_views(fountain, args.views, opencv_command(*pair_files(args.data / "lpc-eyot"), tmp / "cv.png"), tmp,
-                      args.repeat, values)
+        opencv_on_eyot = script_command(_OPENCV, *pair_files(args.data / "lpc-eyot"), tmp / "cv.png")
+        section_views(fountain, args.views, opencv_on_eyot, tmp, args.repeat, values)
         if cuda_available():
             (gpu_pair,) = measure_together([pis3r_command(scale_pair, tmp / "out", "cuda")], args.repeat)
             row(f"gpu pair {args.scale_pair}", size_of(scale_pair[0]), gpu_pair)

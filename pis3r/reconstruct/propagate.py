@@ -87,12 +87,18 @@ def _grid_laplacian(guide: np.ndarray, sigma: float) -> sp.csr_matrix:
     return sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
 
 
+def _screened_system(laplacian: sp.csr_matrix, weight: np.ndarray, smoothness: float) -> sp.csr_matrix:
+    """``diag(weight) + smoothness * L`` ``(N, N)`` float64, CSR (``weight`` nudged off zero)."""
+    import scipy.sparse as sp
+
+    return (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsr().astype(np.float64)
+
+
 def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float) -> np.ndarray:
     """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``."""
-    import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsc().astype(np.float64)
+    A = _screened_system(laplacian, weight, smoothness).tocsc()
     # The system is symmetric positive definite: a minimum-degree ordering of A + A^T (faster
     # than COLAMD) and no pivoting, which keeps that ordering. Narrow panels suit a grid's
     # small supernodes: a third less time than SuperLU's defaults for the same factors.
@@ -112,7 +118,7 @@ def anchored_solve(laplacian: sp.csr_matrix, target: np.ndarray, weight: np.ndar
     import scipy.sparse as sp
     from scipy.sparse.linalg import cg
 
-    A = (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsr().astype(np.float64)
+    A = _screened_system(laplacian, weight, smoothness)
     jacobi = sp.diags(1.0 / A.diagonal())
     solved, info = cg(A, np.asarray(weight * target, np.float64), x0=np.asarray(start, np.float64),
                       rtol=CG_TOLERANCE, atol=0.0, M=jacobi, maxiter=CG_MAX_ITERATIONS)
