@@ -178,6 +178,7 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
         image = blend_reference_border(
             filled.image, canvas.ref_offset, canvas.under_reference, canvas.under_valid,
             editable=canvas.occupied | filled.hole, method=options.blend, into_reference=options.blend_into_reference,
+            in_place=True,  # the filled canvas is this stage's alone
         )
     mask = stitch_mask(canvas.occupied, filled.hole)
     refine = resolve_refine(options.refine, options.refine_weights)

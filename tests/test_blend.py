@@ -49,6 +49,16 @@ def test_blend_removes_the_exposure_step_and_keeps_the_reference(exposure_step, 
     assert out.dtype == np.float32 and out.min() >= 0 and out.max() <= 1
 
 
+@pytest.mark.parametrize("method", ["feather", "multiband"])
+def test_in_place_blends_the_canvas_itself_as_a_copy_would(exposure_step, method):
+    canvas, under, _ = exposure_step
+    expected = blend(canvas, under, method)
+    mine = canvas.copy()
+    out = blend(mine, under, method, in_place=True)
+    assert out is mine
+    np.testing.assert_array_equal(out, expected)
+
+
 def test_none_is_bit_identical(exposure_step):
     canvas, under, _ = exposure_step
     assert blend(canvas, under, "none") is canvas

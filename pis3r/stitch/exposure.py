@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 # Gains outside this range are not an exposure difference but a mismatch.
@@ -65,14 +66,19 @@ class Exposure:
         return out
 
     def apply(self, colours: np.ndarray, t2_ref: np.ndarray, t2_view: np.ndarray) -> np.ndarray:
-        """View colours ``(..., 3)`` float32 brought to the reference, in place (and returned):
+        """View colours ``(..., N, 3)`` float32 brought to the reference, in place (and returned):
         at pixels whose squared tangents are ``t2_ref`` in the reference camera and ``t2_view``
-        in the view (both ``(...)``), multiplied by ``V(t2_ref) / V(t2_view)`` and the gain."""
+        in the view (both ``(..., N)``), multiplied by ``V(t2_ref) / V(t2_view)`` and the gain.
+        Each row of ``N`` colours must be contiguous (any C-contiguous array or a window of one)."""
         ratio = self.vignetting(t2_ref)
         ratio /= self.vignetting(t2_view)
-        # One channel of ratios, then the three gains: no (..., 3) temporary of a whole canvas.
-        colours *= ratio[..., None]
-        colours *= self.gain.astype(np.float32)
+        # OpenCV multiplies three channels by one factor at memory speed, numpy's broadcast of a
+        # (..., 1) factor several times slower: on a canvas of tens of megapixels that is tenths
+        # of a second. Both see the colours as rows of N pixels, without a copy.
+        pixels = np.reshape(colours, (-1, colours.shape[-2], 3), copy=False)
+        factor = cv2.cvtColor(np.reshape(ratio, pixels.shape[:2]), cv2.COLOR_GRAY2RGB)
+        cv2.multiply(pixels, factor, dst=pixels)
+        cv2.multiply(pixels, (*(float(g) for g in self.gain), 0.0), dst=pixels)
         return colours
 
     def to_dict(self) -> dict:
