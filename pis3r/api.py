@@ -158,7 +158,8 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
 @dataclass
 class Composite:
     """One reference's canvas after every stage: geometry, final image, mask, stage seconds,
-    and the refinement that ran (``auto`` resolved)."""
+    and the refinement that ran (``auto`` resolved). Hole filling and blending work on the
+    rendered canvas's pixels in place: ``canvas.image`` is the blended image before refinement."""
 
     canvas: Canvas
     image: np.ndarray
@@ -173,12 +174,13 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
     with sub.stage("render"):
         canvas = render_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale)
     with sub.stage("fill holes"):
-        filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius)
+        # In place, like the blend: each stage owns the canvas's pixels in turn (tens of megapixels).
+        filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius, in_place=True)
     with sub.stage("blend"):
         image = blend_reference_border(
             filled.image, canvas.ref_offset, canvas.under_reference, canvas.under_valid,
             editable=canvas.occupied | filled.hole, method=options.blend, into_reference=options.blend_into_reference,
-            in_place=True,  # the filled canvas is this stage's alone
+            in_place=True,
         )
     mask = stitch_mask(canvas.occupied, filled.hole)
     refine = resolve_refine(options.refine, options.refine_weights)

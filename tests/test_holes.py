@@ -46,3 +46,22 @@ def test_inpainting_box_by_box_gives_the_pixels_of_one_pass_over_the_canvas():
     # the whole canvas breaks differently from one box).
     same = np.all(to_uint8(filled.image)[hole] == whole[hole], axis=1)
     assert same.mean() > 0.99
+
+
+def test_in_place_fills_the_canvas_itself_with_the_same_pixels():
+    rng = np.random.default_rng(2)
+    image = rng.uniform(0, 1, (120, 160, 3)).astype(np.float32)
+    occupied = np.ones((120, 160), bool)
+    occupied[:, 140:] = False
+    for y, x in rng.integers(5, 110, (30, 2)):  # cracks close enough for their boxes to overlap
+        occupied[y : y + 2, x : x + rng.integers(3, 9)] = False
+    image[~occupied] = 0  # the background a rendered canvas holds
+    expected = fill_holes(image, occupied, radius=3)
+    mine = image.copy()
+    filled = fill_holes(mine, occupied, radius=3, in_place=True)
+    assert filled.image is mine
+    boxes = hole_groups(cv2.dilate(filled.hole.astype(np.uint8), disk(6)) > 0, 5)
+    assert any(a[0].start < b[0].stop and b[0].start < a[0].stop and a[1].start < b[1].stop
+               and b[1].start < a[1].stop for i, a in enumerate(boxes) for b in boxes[i + 1:])
+    np.testing.assert_array_equal(filled.hole, expected.hole)
+    np.testing.assert_array_equal(filled.image, expected.image)

@@ -229,7 +229,7 @@ def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, in
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
     canvas = render_to_canvas(scene, 0, scale)
-    filled = fill_holes(canvas.image, canvas.occupied)
+    filled = fill_holes(canvas.image, canvas.occupied, in_place=True)
     x0, y0 = canvas.ref_offset[0] - margin[0], canvas.ref_offset[1] - margin[1]
     predicted, covered = _window(filled.image, canvas.occupied | filled.hole, x0, y0, width, height)
     return predicted, covered, "", scene.model

@@ -47,6 +47,7 @@ def fill_holes(
     radius: int = DEFAULT_HOLE_RADIUS,
     inpaint_radius: int = 5,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    in_place: bool = False,
 ) -> FilledCanvas:
     """Close, inpaint (Telea) and paint the background of a canvas.
 
@@ -55,23 +56,34 @@ def fill_holes(
     returned bit-for-bit. The cost follows the holes, not the canvas: Telea runs on the
     box around each group of holes (:func:`hole_groups`), which gives the pixels of one
     pass over the whole canvas (up to the order in which fast marching takes pixels at
-    equal distance).
+    equal distance). ``in_place``: the holes of ``image`` itself are filled (it becomes the
+    result's ``image``), and no background is painted: ``image`` must hold it already
+    wherever it is neither occupied nor a hole (a canvas of
+    :func:`~pis3r.stitch.render.render_to_canvas` is 0 there, the default background).
+    A canvas of tens of megapixels is then neither copied nor painted.
     """
     hole = hole_mask(occupied, radius)
-    # The background painted everywhere, the image copied over it where it is kept (OpenCV's
-    # masked copy: several times numpy's copyto(where=) with a broadcast mask).
-    out = np.empty_like(image)
-    out[...] = np.asarray(background, np.float32)
-    cv2.copyTo(image, (occupied | hole).view(np.uint8), out)
+    if in_place:
+        out = image
+    else:
+        # The background painted everywhere, the image copied over it where it is kept
+        # (OpenCV's masked copy: several times numpy's copyto(where=) with a broadcast mask).
+        out = np.empty_like(image)
+        out[...] = np.asarray(background, np.float32)
+        cv2.copyTo(image, (occupied | hole).view(np.uint8), out)
     if hole.any():
         # Telea treats every unmasked pixel as known colour: mark the empty
         # background near the holes as unknown too, so it does not bleed in.
         near = cv2.dilate(hole.astype(np.uint8), disk(inpaint_radius + 1)) > 0
         unknown = (hole | (near & ~occupied)).astype(np.uint8)
+        # Boxes may overlap: every box is inpainted before any is written, so that in place
+        # too no box sees what another filled (Telea's result would move by a level).
+        filled = []
         for box in hole_groups(near, inpaint_radius):
-            filled = cv2.inpaint(to_uint8(image[box]), unknown[box], inpaint_radius, cv2.INPAINT_TELEA)
-            mine = hole[box]
-            out[box][mine] = filled[mine].astype(np.float32) / 255.0
+            colours = cv2.inpaint(to_uint8(image[box]), unknown[box], inpaint_radius, cv2.INPAINT_TELEA)
+            filled.append((box, colours[hole[box]]))
+        for box, colours in filled:
+            out[box][hole[box]] = colours.astype(np.float32) / 255.0
     return FilledCanvas(image=out, hole=hole)
 
 
