@@ -231,8 +231,7 @@ def _sample_points(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     padded = np.zeros((-(-n // 4096) * 4096, 2), np.float32)
     padded[:n] = uv
     grid = padded.reshape(-1, 4096, 2)
-    return cv2.remap(image, grid[..., 0], grid[..., 1], COLOUR_INTERPOLATION,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
+    return cv2.remap(image, grid, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n]
 
 
 def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_camera: Camera,
@@ -279,8 +278,8 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
             continue
         box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
         uv = raster.uv[box]
-        sampled = cv2.remap(scene.views[index].image, uv[..., 0], uv[..., 1], COLOUR_INTERPOLATION,
-                            borderMode=cv2.BORDER_REPLICATE)
+        # One two-channel map, read in place: split into x and y, each would be copied first.
+        sampled = cv2.remap(scene.views[index].image, uv, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
             exposure.apply(sampled, grid_squared_tangents(canvas_K, *box),
