@@ -64,7 +64,10 @@ class Matches:
 
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` RGB to ``(H, W)`` uint8 luminance: float in [0, 1] is rounded half up,
-    uint8 (already quantised by the caller) is converted as it is."""
+    uint8 (already quantised by the caller) is converted as it is; ``(H, W)`` uint8 is that
+    luminance already, returned as it is."""
+    if image.ndim == 2 and image.dtype == np.uint8:
+        return image
     if image.dtype != np.uint8:
         # The same float arithmetic as clip(image * 255 + 0.5), on one buffer: full-resolution
         # photos are tens of millions of samples.
@@ -115,7 +118,7 @@ def detect(
     mask: np.ndarray | None = None,
 ) -> Features:
     """SIFT keypoints and descriptors of ``(H, W, 3)`` ``image`` (float in [0, 1] or uint8,
-    see :func:`to_gray_u8`).
+    or its ``(H, W)`` uint8 luminance: see :func:`to_gray_u8`).
 
     ``max_features``: SIFT's ``nfeatures`` (the strongest kept); ``max_side``: detect on the
     image resized to at most this longest side (``None``: at full resolution), points are
@@ -305,9 +308,9 @@ REFINE_PASSES = 2
 
 def refine_matches(image_a: np.ndarray, image_b: np.ndarray, matches: Matches) -> Matches:
     """``matches`` with ``pts_b`` moved to where a patch around each ``pts_a`` correlates best
-    in ``image_b`` (both ``(H, W, 3)``, full resolution), under the local affine map of
-    its neighbours; points whose patches do not correlate, or whose neighbours fit no
-    affine map, stay where they are. ``pts_a`` are kept."""
+    in ``image_b`` (both ``(H, W, 3)`` or their ``(H, W)`` uint8 luminance, full resolution),
+    under the local affine map of its neighbours; points whose patches do not correlate, or
+    whose neighbours fit no affine map, stay where they are. ``pts_a`` are kept."""
     if len(matches) < REFINE_NEIGHBOURS:
         return matches
     gray_a = to_gray_u8(image_a).astype(np.float32)

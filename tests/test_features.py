@@ -184,6 +184,19 @@ def test_float_images_become_luminance_rounded_half_up_and_clipped(dtype):
     # float32 rounding may move a value sitting on a .5 by one step; nothing more.
     assert np.abs(gray.astype(int) - expected).max() <= 1 and (gray == expected).mean() > 0.99
     np.testing.assert_array_equal(to_gray_u8(expected[..., None].repeat(3, axis=2)), expected)
+    assert to_gray_u8(gray) is gray  # luminance already: what PhotoFeatures hands every detector
+
+
+def test_detectors_find_the_same_features_on_a_photo_and_on_its_luminance():
+    rng = np.random.default_rng(3)
+    image = cv2.resize(rng.random((60, 80, 3)).astype(np.float32), (320, 240), interpolation=cv2.INTER_CUBIC)
+    image = np.clip(image, 0, 1)
+    gray = to_gray_u8(image)
+    for found, again in ((detect(image), detect(gray)),
+                         (detect_affine(image, max_side=160), detect_affine(gray, max_side=160))):
+        assert len(found.points) > 20
+        np.testing.assert_array_equal(found.points, again.points)
+        np.testing.assert_array_equal(found.descriptors, again.descriptors)
 
 
 def test_refined_matches_land_on_the_true_positions_under_a_local_affine_map():

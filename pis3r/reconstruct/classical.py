@@ -214,7 +214,7 @@ class ClassicalReconstructor:
         self._reject_identical(found.matches, ref.photo, other.photo)
         # APAP's views have the homography's cameras and plane.
         model = "homography" if self.options.model == "apap" else self.options.model
-        return estimate_pair(ref.photo, other.photo, found, focal_ref, self._known_focal(other.photo)[0], source,
+        return estimate_pair(ref, other, found, focal_ref, self._known_focal(other.photo)[0], source,
                              focal_is_final, model, self.options.focal_rule, self._memoised)
 
     def _placed(self, view: View, pair: PairGeometry, photo: Photo, onto_photo: Photo, onto: int) -> View:
