@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pis3r.io import by_row_blocks
+
 # Detection runs on images resized so their longest side is at most this; the
 # keypoints are scaled back to full-resolution pixels.
 DETECT_MAX_SIDE = 1280
@@ -68,14 +70,17 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
     luminance already, returned as it is."""
     if image.ndim == 2 and image.dtype == np.uint8:
         return image
-    if image.dtype != np.uint8:
-        # The same float arithmetic as clip(image * 255 + 0.5), on one buffer: full-resolution
-        # photos are tens of millions of samples.
-        scaled = image * 255.0
+    return by_row_blocks(image, np.empty(image.shape[:2], np.uint8), _luminance_u8)
+
+
+def _luminance_u8(block: np.ndarray) -> np.ndarray:
+    if block.dtype != np.uint8:
+        # The same float arithmetic as clip(block * 255 + 0.5), on one buffer.
+        scaled = block * 255.0
         scaled += 0.5
         np.clip(scaled, 0, 255, out=scaled)
-        image = scaled.astype(np.uint8)
-    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        block = scaled.astype(np.uint8)
+    return cv2.cvtColor(block, cv2.COLOR_RGB2GRAY)
 
 
 def _sift(max_features: int, contrast_threshold: float) -> cv2.SIFT:

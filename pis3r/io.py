@@ -217,10 +217,28 @@ def _apply_orientation(pixels: np.ndarray, exif: Image.Exif | None) -> np.ndarra
     return np.ascontiguousarray(op(pixels)) if op else pixels
 
 
+# Rows converted at a time by the per-pixel conversions (to_uint8, features.to_gray_u8): their
+# float temporaries stay small and in cache. One temporary of a whole 6 MP photo is 72 MB of
+# fresh pages: 0.13 s for a conversion that takes 0.02 s block by block.
+CONVERT_ROWS = 128
+
+
+def by_row_blocks(image: np.ndarray, out: np.ndarray, convert) -> np.ndarray:
+    """``out`` filled with ``convert`` of ``image``, ``CONVERT_ROWS`` rows at a time (for a
+    per-pixel ``convert``: the same values as one call on the whole image)."""
+    for top in range(0, image.shape[0], CONVERT_ROWS):
+        out[top:top + CONVERT_ROWS] = convert(image[top:top + CONVERT_ROWS])
+    return out
+
+
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """``(H, W[, 3])`` float in [0, 1] to uint8 with rounding."""
-    # One float32 temporary, rounded and clipped in place: a 30 MP canvas in 0.2 s, not 0.7.
-    scaled = np.multiply(np.asarray(image, dtype=np.float32), np.float32(255.0))
+    return by_row_blocks(image, np.empty(image.shape, np.uint8), _rounded_u8)
+
+
+def _rounded_u8(block: np.ndarray) -> np.ndarray:
+    # One float32 temporary, rounded and clipped in place.
+    scaled = np.multiply(np.asarray(block, dtype=np.float32), np.float32(255.0))
     np.rint(scaled, out=scaled)
     np.clip(scaled, 0, 255, out=scaled)
     return scaled.astype(np.uint8)

@@ -14,7 +14,7 @@ from pis3r.eval.registration import (
     match_canvases,
 )
 from pis3r.features import Features, Matches, detect, detect_affine, match, refine_matches, to_gray_u8
-from pis3r.io import to_uint8
+from pis3r.io import CONVERT_ROWS, to_uint8
 
 
 @pytest.fixture(scope="module")
@@ -215,3 +215,16 @@ def test_refined_matches_land_on_the_true_positions_under_a_local_affine_map():
     assert np.median(before) > 1.0 and np.median(after) < 0.2 and np.mean(after < 0.5) > 0.8
     flat = np.full_like(a, 0.5)
     assert np.array_equal(refine_matches(flat, flat, Matches(pts_a, noisy)).pts_b, noisy)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_conversions_by_row_blocks_equal_one_pass_over_the_whole_image(dtype):
+    rng = np.random.default_rng(4)
+    image = (rng.random((3 * CONVERT_ROWS + 7, 31, 3)) * 1.4 - 0.2).astype(dtype)
+    scaled = image * 255.0
+    scaled += 0.5
+    np.clip(scaled, 0, 255, out=scaled)
+    np.testing.assert_array_equal(to_gray_u8(image), cv2.cvtColor(scaled.astype(np.uint8), cv2.COLOR_RGB2GRAY))
+    rounded = np.clip(np.rint(np.float32(255.0) * image.astype(np.float32)), 0, 255).astype(np.uint8)
+    np.testing.assert_array_equal(to_uint8(image), rounded)
+    np.testing.assert_array_equal(to_uint8(image[..., 1]), rounded[..., 1])
