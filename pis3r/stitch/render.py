@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import Camera
+from pis3r.io import CONVERT_ROWS
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
 from pis3r.scene import Scene
 from pis3r.stitch.blend import BAND_FRACTION
@@ -282,8 +283,14 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
         sampled = cv2.remap(scene.views[index].image, uv, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
-            exposure.apply(sampled, grid_squared_tangents(canvas_K, *box),
-                           squared_tangents(uv, scene.views[index].camera.K))
+            # A block of rows at a time: the squared tangents and falloffs stay small
+            # temporaries, not half a dozen float planes of the whole box.
+            rows, cols = box
+            for top in range(0, len(sampled), CONVERT_ROWS):
+                block = slice(top, top + CONVERT_ROWS)
+                canvas_rows = slice(rows.start + top, min(rows.stop, rows.start + top + CONVERT_ROWS))
+                exposure.apply(sampled[block], grid_squared_tangents(canvas_K, canvas_rows, cols),
+                               squared_tangents(uv[block], scene.views[index].camera.K))
         elif (exposure.gain != 1).any():
             cv2.multiply(sampled, tuple(float(g) for g in exposure.gain) + (0.0,), dst=sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
