@@ -89,3 +89,11 @@ def test_squared_tangents_of_a_camera():
     ys, xs = np.mgrid[7:90:4, 30:181:5]
     np.testing.assert_allclose(grid_squared_tangents(K, slice(7, 90, 4), slice(30, 181, 5)),
                                squared_tangents(np.stack([xs, ys], -1).astype(np.float64), K), rtol=1e-6)
+
+
+def test_a_gain_alone_multiplies_each_channel_in_place():
+    colours = np.random.default_rng(7).random((5, 4, 3)).astype(np.float32)
+    gain = np.array([0.8, 1.0, 1.25], np.float32)
+    expected = colours * gain
+    assert Exposure(gain).apply_gain(colours) is colours
+    np.testing.assert_array_equal(colours, expected)

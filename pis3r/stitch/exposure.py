@@ -78,7 +78,13 @@ class Exposure:
         pixels = np.reshape(colours, (-1, colours.shape[-2], 3), copy=False)
         factor = cv2.cvtColor(np.reshape(ratio, pixels.shape[:2]), cv2.COLOR_GRAY2RGB)
         cv2.multiply(pixels, factor, dst=pixels)
-        cv2.multiply(pixels, (*(float(g) for g in self.gain), 0.0), dst=pixels)
+        self.apply_gain(pixels)
+        return colours
+
+    def apply_gain(self, colours: np.ndarray) -> np.ndarray:
+        """Colours ``(..., N, 3)`` float32 (rows of ``N`` contiguous) multiplied by the gain
+        alone, in place (and returned): the whole :meth:`apply` of an exposure without falloff."""
+        cv2.multiply(colours, (*(float(g) for g in self.gain), 0.0), dst=colours)
         return colours
 
     def to_dict(self) -> dict:

@@ -285,14 +285,14 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
         if any(exposure.falloff):
             # A block of rows at a time: the squared tangents and falloffs stay small
             # temporaries, not half a dozen float planes of the whole box.
-            rows, cols = box
+            box_rows, box_cols = box
             for top in range(0, len(sampled), CONVERT_ROWS):
                 block = slice(top, top + CONVERT_ROWS)
-                canvas_rows = slice(rows.start + top, min(rows.stop, rows.start + top + CONVERT_ROWS))
-                exposure.apply(sampled[block], grid_squared_tangents(canvas_K, canvas_rows, cols),
+                canvas_rows = slice(box_rows.start + top, min(box_rows.stop, box_rows.start + top + CONVERT_ROWS))
+                exposure.apply(sampled[block], grid_squared_tangents(canvas_K, canvas_rows, box_cols),
                                squared_tangents(uv[block], scene.views[index].camera.K))
         elif (exposure.gain != 1).any():
-            cv2.multiply(sampled, tuple(float(g) for g in exposure.gain) + (0.0,), dst=sampled)
+            exposure.apply_gain(sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
         np.clip(sampled, 0.0, 1.0, out=sampled)
         # OpenCV's masked copy, into the canvas's rows and columns in place: several times
