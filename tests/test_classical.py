@@ -67,6 +67,27 @@ def test_an_unfilled_reference_keeps_only_what_the_pair_measured(analytic_pair, 
     np.testing.assert_array_equal(unfilled.camera.K, filled.camera.K)
 
 
+def test_the_reference_s_depth_is_filled_when_first_read(analytic_pair, monkeypatch):
+    """A stitch onto the reference pastes its pixels: its depth fill waits for a reader (an
+    export, another reference) and is then the fill an eager reconstruction makes."""
+    from pis3r.reconstruct import classical
+
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
+    fills = []
+    propagate = classical.propagate_inverse_depth
+    monkeypatch.setattr(classical, "propagate_inverse_depth", lambda *a, **k: fills.append(1) or propagate(*a, **k))
+    result = pis3r.stitch([ref_img, tgt_img], backend="classical", model="3d")
+    assert len(fills) == 1  # the other view's alone
+    canvas_fills = len(fills)
+    reference = result.scene.views[0]
+    assert (reference.depth > 0).mean() > 0.9 and len(fills) == canvas_fills + 1
+    assert reference.confidence.shape == reference.depth.shape and len(fills) == canvas_fills + 1
+    eager = ClassicalReconstructor(ReconstructOptions(model="3d")).reconstruct(photos).views[0]
+    np.testing.assert_array_equal(reference.depth, eager.depth)
+    np.testing.assert_array_equal(reference.confidence, eager.confidence)
+
+
 def test_the_prior_focal_rule_fits_the_pose_at_the_prior(analytic_pair):
     """``focal_rule="prior"`` (a band candidate): the focal is 1.2 x the longest side, not the
     self-calibrated one, and the pose is fitted afresh at it (still about right here)."""
@@ -150,7 +171,7 @@ def test_local_warp_threshold_is_in_pixels_of_the_photo_as_read():
     """APAP's loose 10 px on a photo as read up to 1024 x 768, the same share of a larger
     one, and what either means on a working copy (the held-back band test's)."""
     from pis3r.io import downscaled
-    from pis3r.reconstruct.classical import LOCAL_WARP_THRESHOLD_PX, local_warp_threshold
+    from pis3r.reconstruct.local_warp import LOCAL_WARP_THRESHOLD_PX, local_warp_threshold
 
     small = Photo(np.zeros((375, 500, 3), np.float32), "small")
     large = Photo(np.zeros((1536, 2048, 3), np.float32), "large")

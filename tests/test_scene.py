@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import pickle
+import threading
 
 import cv2
 import numpy as np
 import pytest
 
 from pis3r.camera import Camera, intrinsics
-from pis3r.scene import DroppedView, Scene, View
+from pis3r.scene import Deferred, DroppedView, Scene, View
 
 
 def _view(name: str, t=(0.0, 0.0, 0.0)) -> View:
@@ -66,3 +68,28 @@ def test_a_view_registered_to_another_view_lands_in_the_world_of_that_view():
     # Anchored at the identity, it is a rescaling.
     same = pair_view.rescaled(3.0).in_world_of(Camera.identity(anchor.K, 8, 6))
     assert np.allclose(same.camera.t, pair_view.rescaled(3.0).camera.t) and np.allclose(same.camera.R, R_ca)
+
+
+def test_a_deferred_depth_is_computed_once_at_its_first_read_and_pickles_as_its_value():
+    calls = []
+
+    def fill():
+        calls.append(threading.get_ident())
+        return np.full((6, 8), 2.0, np.float32), np.full((6, 8), 0.5, np.float32)
+
+    filled = Deferred(fill)
+    view = dataclasses.replace(_view("a"), depth=filled, confidence=filled)
+    assert calls == []
+    # Readers on several threads at once: one computes, all get its value.
+    threads = [threading.Thread(target=lambda: view.confidence) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(calls) == 1
+    assert np.all(view.depth == 2.0) and np.all(view.confidence == 0.5) and len(calls) == 1
+    assert np.allclose(view.rescaled(2.0).depth, 4.0) and np.allclose(view.world_points(), _view("a").world_points())
+    copy = pickle.loads(pickle.dumps(view))
+    assert np.all(copy.depth == 2.0) and np.all(copy.confidence == 0.5) and len(calls) == 1
+    with pytest.raises(TypeError, match="depth"):
+        View(np.zeros((6, 8, 3), np.float32), view.camera)  # still required fields

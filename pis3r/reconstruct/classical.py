@@ -29,11 +29,11 @@ from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
-from pis3r.reconstruct.local_warp import fit_local_warp
+from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
 from pis3r.reconstruct.pairs import ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches, estimate_pair
 from pis3r.reconstruct.propagate import propagate_inverse_depth
 from pis3r.robust import MATCH_FILTER, fit_homography
-from pis3r.scene import DroppedView, Scene, View
+from pis3r.scene import Deferred, DroppedView, Scene, View
 
 WORK_MAX_SIDE = 640
 # Relative jump of inverse depth between neighbours above which a pixel sits on a
@@ -42,11 +42,6 @@ DEPTH_EDGE_JUMP = 0.08
 # A view that does not overlap the reference tries this many registered views (those it
 # shares the most matches with) before it is dropped.
 CHAIN_ANCHORS = 3
-# The ``apap`` model keeps the matches one homography explains within this many pixels of
-# the photo as read (APAP's loose RANSAC step, as its public port runs it on the stitching
-# literature's photos of up to about 1 MP), or within the same share of a photo larger than
-# 1024 x 768 (:func:`local_warp_threshold`).
-LOCAL_WARP_THRESHOLD_PX = 10.0
 
 
 def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
@@ -220,7 +215,7 @@ class ClassicalReconstructor:
     def _placed(self, view: View, pair: PairGeometry, photo: Photo, onto_photo: Photo, onto: int) -> View:
         """``view`` (of ``photo``, paired with ``onto_photo``, view ``onto``), placed onto it by local
         homographies when the model is ``apap``: moving DLT over the pair's epipolar inliers
-        that one homography explains within ``LOCAL_WARP_THRESHOLD_PX`` (APAP's loose RANSAC
+        that one homography explains within :func:`local_warp_threshold` (APAP's loose RANSAC
         step: mismatches along epipolar lines out; matches off the dominant plane, which the
         local fits follow, in)."""
         if self.options.model != "apap":
@@ -316,34 +311,31 @@ class ClassicalReconstructor:
         if not fill_ref:
             unfilled_a = View(ref.pixels, camera_a, measured_a, (measured_a > 0).astype(np.float32), ref.name)
             return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
-        # One view after the other: each fill's two factorisations already use both cores.
-        filled_a = self._filled_view(ref, img_a, meas_a, camera_a)
-        return filled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
+        # The reference's fill waits for its first reader (pis3r.scene.Deferred): a stitch onto
+        # the reference pastes its pixels. Each fill's two factorisations use both cores.
+        return (self._filled_view(ref, img_a, meas_a, camera_a, deferred=True),
+                self._filled_view(other, img_b, meas_b, camera_b), measured_a)
 
-    def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera) -> View:
+    def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera,
+                     deferred: bool = False) -> View:
         """The view of ``photo`` with the depth measured on its working ``image`` filled
-        everywhere (``self.options.depth_fill``), at full resolution, cut at depth edges."""
+        everywhere (``self.options.depth_fill``), at full resolution, cut at depth edges;
+        ``deferred``: filled when first read."""
         if not (meas.confidence > 0.05).any():
             raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
-        idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
-        dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=self.options.depth_fill)
-        dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
-        depth = np.divide(1.0, dense, dtype=np.float32)  # in place after: 12 MP temporaries are costly
-        depth[_depth_edges(dense)] = 0.0
-        conf[~(depth > 0)] = 0.0  # the fill's own float32 array (or its resized copy)
-        return View(photo.pixels, camera, depth, conf, photo.name)
+        method = self.options.depth_fill
 
+        def fill() -> tuple[np.ndarray, np.ndarray]:
+            idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
+            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=method)
+            dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
+            depth = np.divide(1.0, dense, dtype=np.float32)  # in place after: 12 MP temporaries are costly
+            depth[_depth_edges(dense)] = 0.0
+            conf[~(depth > 0)] = 0.0  # the fill's own float32 array (or its resized copy)
+            return depth, conf
 
-def local_warp_threshold(photo: Photo) -> float:
-    """The ``apap`` model's loose homography threshold in pixels of ``photo``:
-    ``LOCAL_WARP_THRESHOLD_PX`` in pixels of the photo as read, or the same share of a photo
-    read larger than 1024 x 768, scaled to a working copy (``Photo.scale``: the held-back band
-    test's copies keep the matches the whole photo would). Pixels, not a share of every photo:
-    on the crop protocol, scaling the 10 px down with photos smaller than 1024 x 768 dropped
-    matches the local fits need (``ela-DFW_desk`` 500 x 375: 23.98 -> 26.77 dB with APAP's
-    local homographies forced; no pair lost more than 0.1 dB)."""
-    read_size = photo.width / photo.scale, photo.height / photo.scale
-    return LOCAL_WARP_THRESHOLD_PX * photo.scale * max(1.0, geometry.pixel_scale(*read_size))
+        depth_and_confidence = (Deferred(fill),) * 2 if deferred else fill()
+        return View(photo.pixels, camera, *depth_and_confidence, photo.name)
 
 
 def _add_sparse_seeds(meas: DepthMeasurement, pix: np.ndarray, pix_other: np.ndarray, K, K_other, R, t) -> None:

@@ -40,7 +40,7 @@ import numpy as np
 from pis3r.camera import Camera
 from pis3r.io import CONVERT_ROWS
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
-from pis3r.scene import Scene
+from pis3r.scene import Deferrable, Deferred, Scene
 from pis3r.stitch.blend import BAND_FRACTION
 from pis3r.stitch.exposure import (MIN_SAMPLES, NEUTRAL, Exposure, corner_t2, fit_exposure, grid_squared_tangents,
                                    squared_tangents)
@@ -86,7 +86,8 @@ class Canvas:
     """The z-buffered rendering of a scene onto the reference camera.
 
     ``image``: ``(H, W, 3)`` float32; ``depth``: ``(H, W)`` float32 z in the reference
-    frame (``inf`` where empty); ``source``: ``(H, W)`` int16 index of the view whose
+    frame (``inf`` where empty; computed when first read, since it needs the reference's own
+    depth, which a stitch does not otherwise read: :class:`pis3r.scene.Deferred`); ``source``: ``(H, W)`` int16 index of the view whose
     surface won (``-1`` where empty); ``camera``: the canvas camera; ``ref_offset``:
     ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
     ``dropped_points``: mesh vertices of rendered triangles that fell outside the capped
@@ -100,7 +101,7 @@ class Canvas:
     """
 
     image: np.ndarray
-    depth: np.ndarray
+    depth: np.ndarray = Deferrable()
     source: np.ndarray
     camera: Camera
     ref_offset: tuple[int, int]
@@ -346,14 +347,18 @@ def render_to_canvas(
     image = _sample_colours(scene, raster, indices, exposures, canvas_camera.K)
     # Layer -1 (empty) picks the trailing -1.
     source = np.asarray(indices + [-1], np.int16)[raster.layer]
-    depth = raster.z
     under_reference, under_valid = image[window].copy(), source[window] >= 0
     image[window] = ref_view.image
     source[window] = ref_index
-    depth[window] = np.where(ref_view.valid, ref_view.depth, np.inf)
+
+    def depth_with_reference() -> np.ndarray:
+        depth = raster.z
+        depth[window] = np.where(ref_view.valid, ref_view.depth, np.inf)
+        return depth
+
     return Canvas(
         image=image,
-        depth=depth,
+        depth=Deferred(depth_with_reference),
         source=source,
         camera=canvas_camera,
         ref_offset=(ox, oy),
