@@ -67,22 +67,22 @@ def test_an_unfilled_reference_keeps_only_what_the_pair_measured(analytic_pair, 
     np.testing.assert_array_equal(unfilled.camera.K, filled.camera.K)
 
 
-def test_the_reference_s_depth_is_filled_when_first_read(analytic_pair, monkeypatch):
-    """A stitch onto the reference pastes its pixels: its depth fill waits for a reader (an
-    export, another reference) and is then the fill an eager reconstruction makes."""
-    from pis3r.reconstruct import classical
+def test_the_reference_s_depth_is_measured_and_filled_when_first_read(analytic_pair, monkeypatch):
+    """A stitch onto the reference pastes its pixels: measuring and filling its depth wait for
+    a reader (an export, another reference) and then give what an eager reconstruction does."""
+    from pis3r.reconstruct import classical, dense
 
     _, _, ref_img, _, tgt_img, _ = analytic_pair
     photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
-    fills = []
-    propagate = classical.propagate_inverse_depth
+    fills, measures = [], []
+    propagate, from_flow = classical.propagate_inverse_depth, dense._depth_from_flow
     monkeypatch.setattr(classical, "propagate_inverse_depth", lambda *a, **k: fills.append(1) or propagate(*a, **k))
+    monkeypatch.setattr(dense, "_depth_from_flow", lambda *a, **k: measures.append(1) or from_flow(*a, **k))
     result = pis3r.stitch([ref_img, tgt_img], backend="classical", model="3d")
-    assert len(fills) == 1  # the other view's alone
-    canvas_fills = len(fills)
+    assert len(fills) == 1 and len(measures) == 1  # the other view's alone
     reference = result.scene.views[0]
-    assert (reference.depth > 0).mean() > 0.9 and len(fills) == canvas_fills + 1
-    assert reference.confidence.shape == reference.depth.shape and len(fills) == canvas_fills + 1
+    assert (reference.depth > 0).mean() > 0.9 and len(fills) == 2 and len(measures) == 2
+    assert reference.confidence.shape == reference.depth.shape and len(fills) == 2 and len(measures) == 2
     eager = ClassicalReconstructor(ReconstructOptions(model="3d")).reconstruct(photos).views[0]
     np.testing.assert_array_equal(reference.depth, eager.depth)
     np.testing.assert_array_equal(reference.confidence, eager.confidence)

@@ -26,7 +26,6 @@ from pis3r.errors import InputError, NotEnoughOverlapError, Pis3rError, Reconstr
 from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
-from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
@@ -233,7 +232,7 @@ class ClassicalReconstructor:
         built) only the other view, brought to that scale: the first is then ``None``."""
         if pair.model == "homography":
             view_ref, view_other = self._views_homography(ref, other, pair)
-            measured_ref = view_ref.depth
+            measured_ref = Deferred(lambda: (view_ref.depth,))
         else:
             view_ref, view_other, measured_ref = self._views_3d(
                 ref, other, pair, fill_ref=ref_depth is None and self.options.fill_reference)
@@ -241,7 +240,7 @@ class ClassicalReconstructor:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
         # measured on ``ref``.
-        ratio = _median_ratio(ref_depth, measured_ref)
+        ratio = _median_ratio(ref_depth, measured_ref.value()[0])
         if ratio is None:
             raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
         return None, view_other.rescaled(ratio)
@@ -283,8 +282,8 @@ class ClassicalReconstructor:
     # -- depth: full 3-D model -----------------------------------------------------------
     def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry, fill_ref: bool = True):
         """``(view_ref, view_other, measured_ref)``: both views with their depth filled (without
-        ``fill_ref``, the reference keeps only the depth the pair measured on it) and that
-        measured depth ``(H, W)`` (0 where unmeasured)."""
+        ``fill_ref``, the reference keeps only the depth the pair measured on it) and a
+        :class:`Deferred` of that measured depth ``(H, W)`` (0 where unmeasured) and its mask."""
         K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
         img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
         img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
@@ -295,21 +294,23 @@ class ClassicalReconstructor:
         H_work = S_b @ H @ np.linalg.inv(S_a)
 
         def measure():
-            meas_a, meas_b = measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work)
-            pts_a = (inliers.pts_a + 0.5) * s_a - 0.5
-            pts_b = (inliers.pts_b + 0.5) * s_b - 0.5
-            _add_sparse_seeds(meas_a, pts_a, pts_b, Kw_a, Kw_b, R, t)
-            _add_sparse_seeds(meas_b, pts_b, pts_a, Kw_b, Kw_a, R.T, -R.T @ t)
-            return meas_a, meas_b
+            return measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work, (inliers.pts_a + 0.5) * s_a - 0.5,
+                                (inliers.pts_b + 0.5) * s_b - 0.5)
 
         meas_a, meas_b = self._memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes()), measure)
         camera_a = Camera.identity(K_a, ref.width, ref.height)
         camera_b = Camera(K_b, R, t, other.width, other.height)
-        # What the pair measured on ``ref`` (0 where nothing reliable), at full resolution.
-        measured_a = cv2.resize(np.where(meas_a.confidence > 0.05, meas_a.depth, 0.0).astype(np.float32),
-                                (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
+
+        def measured_on_ref():
+            # 0 where nothing reliable, at full resolution; read only by later pairs' scale ties
+            # and an unfilled reference's readers, like meas_a itself (pis3r.scene.Deferred).
+            measured = cv2.resize(np.where(meas_a.confidence > 0.05, meas_a.depth, 0.0).astype(np.float32),
+                                  (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
+            return measured, (measured > 0).astype(np.float32)
+
+        measured_a = Deferred(measured_on_ref)
         if not fill_ref:
-            unfilled_a = View(ref.pixels, camera_a, measured_a, (measured_a > 0).astype(np.float32), ref.name)
+            unfilled_a = View(ref.pixels, camera_a, measured_a, measured_a, ref.name)
             return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
         # The reference's fill waits for its first reader (pis3r.scene.Deferred): a stitch onto
         # the reference pastes its pixels. Each fill's two factorisations use both cores.
@@ -321,11 +322,11 @@ class ClassicalReconstructor:
         """The view of ``photo`` with the depth measured on its working ``image`` filled
         everywhere (``self.options.depth_fill``), at full resolution, cut at depth edges;
         ``deferred``: filled when first read."""
-        if not (meas.confidence > 0.05).any():
-            raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
         method = self.options.depth_fill
 
         def fill() -> tuple[np.ndarray, np.ndarray]:
+            if not (meas.confidence > 0.05).any():
+                raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
             idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
             dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=method)
             dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
@@ -336,21 +337,6 @@ class ClassicalReconstructor:
 
         depth_and_confidence = (Deferred(fill),) * 2 if deferred else fill()
         return View(photo.pixels, camera, *depth_and_confidence, photo.name)
-
-
-def _add_sparse_seeds(meas: DepthMeasurement, pix: np.ndarray, pix_other: np.ndarray, K, K_other, R, t) -> None:
-    """Write triangulated inlier matches into a measurement (they are the most reliable
-    correspondences, and the only ones where flow fails on very large disparities)."""
-    depth, angle = geometry.triangulate_depth(pix, pix_other, K, K_other, R, t)
-    h, w = meas.depth.shape
-    xy = np.rint(pix).astype(int)
-    ok = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
-    ok &= np.degrees(angle) > 0.25
-    x, y = xy[ok, 0], xy[ok, 1]
-    conf = np.clip(np.degrees(angle[ok]) / 1.0, 0.2, 1.0)
-    replace = conf > meas.confidence[y, x]
-    meas.depth[y[replace], x[replace]] = depth[ok][replace]
-    meas.confidence[y[replace], x[replace]] = conf[replace]
 
 
 def _to_full_resolution(idepth: np.ndarray, conf: np.ndarray, width: int, height: int):

@@ -5,6 +5,8 @@ flow only has to find the residual parallax (which keeps DIS within its range fo
 disparities of hundreds of pixels, in any direction of camera motion: sideways and
 forward alike). Every correspondence is checked forward-backward (occlusions), by
 its epipolar distance and by its triangulation angle; what fails gets confidence 0.
+Triangulated sparse matches are written in as extra seeds: they are the most reliable
+correspondences, and the only ones where flow fails on very large disparities.
 """
 
 from __future__ import annotations
@@ -17,15 +19,17 @@ import numpy as np
 
 from pis3r.features import to_gray_u8
 from pis3r.reconstruct.geometry import triangulate_depth
+from pis3r.scene import Deferrable, Deferred
 
 
 @dataclass
 class DepthMeasurement:
     """Measured depth of one view on its working grid: ``depth (h, w)`` (0 = none),
-    ``confidence (h, w)`` in [0, 1]."""
+    ``confidence (h, w)`` in [0, 1]; both may be one :class:`pis3r.scene.Deferred`
+    computing ``(depth, confidence)`` when first read."""
 
-    depth: np.ndarray
-    confidence: np.ndarray
+    depth: np.ndarray = Deferrable(0)
+    confidence: np.ndarray = Deferrable(1)
 
 
 def _dis():
@@ -67,23 +71,49 @@ def measure_pair(
     R: np.ndarray,
     t: np.ndarray,
     H_ab: np.ndarray,
+    seeds_a: np.ndarray,
+    seeds_b: np.ndarray,
 ) -> tuple[DepthMeasurement, DepthMeasurement]:
     """Depth of both views where they see each other, on the images' own grids.
 
     ``image_*``: ``(h, w, 3)`` float32 (already at working resolution, with ``K_*``
-    matching); ``x_b = R x_a + t``; ``H_ab`` maps pixels of a to b (pre-warp).
+    matching); ``x_b = R x_a + t``; ``H_ab`` maps pixels of a to b (pre-warp);
+    ``seeds_a``, ``seeds_b``: ``(N, 2)`` matching pixels of the two grids (the pair's
+    inliers), triangulated into both measurements. The measurement of a is made when first
+    read: the flows both ways check b's, but a stitch onto a reads only b's.
     """
     gray_a, gray_b = to_gray_u8(image_a), to_gray_u8(image_b)
     R_ba, t_ba = R.T, -R.T @ t
-    # The two directions are independent and spend their time in OpenCV and numpy, which
-    # release the GIL: one thread each.
-    with ThreadPoolExecutor(2) as pool:
+    # The two flows are independent and spend their time in OpenCV, which releases the GIL:
+    # one thread each.
+    with ThreadPoolExecutor(1) as pool:
         flow_to_b = pool.submit(_flow_to_other, gray_a, gray_b, H_ab)
         to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
         to_b = flow_to_b.result()
-        depth_a = pool.submit(_depth_from_flow, to_b, to_a, K_a, K_b, R, t, gray_a)
-        depth_b = _depth_from_flow(to_a, to_b, K_b, K_a, R_ba, t_ba, gray_b)
-        return depth_a.result(), depth_b
+
+    def measure(forward, backward, K, K_other, R, t, gray, seeds, seeds_other):
+        measured = _depth_from_flow(forward, backward, K, K_other, R, t, gray)
+        _add_sparse_seeds(measured, seeds, seeds_other, K, K_other, R, t)
+        return measured.depth, measured.confidence
+
+    depth_a = Deferred(lambda: measure(to_b, to_a, K_a, K_b, R, t, gray_a, seeds_a, seeds_b))
+    return (DepthMeasurement(depth_a, depth_a),
+            DepthMeasurement(*measure(to_a, to_b, K_b, K_a, R_ba, t_ba, gray_b, seeds_b, seeds_a)))
+
+
+def _add_sparse_seeds(meas: DepthMeasurement, pix: np.ndarray, pix_other: np.ndarray, K, K_other, R, t) -> None:
+    """Write the triangulated matches ``pix`` <-> ``pix_other`` ``(N, 2)`` into ``meas`` where
+    they are more confident than the flow."""
+    depth, angle = triangulate_depth(pix, pix_other, K, K_other, R, t)
+    h, w = meas.depth.shape
+    xy = np.rint(pix).astype(int)
+    ok = (depth > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+    ok &= np.degrees(angle) > 0.25
+    x, y = xy[ok, 0], xy[ok, 1]
+    conf = np.clip(np.degrees(angle[ok]) / 1.0, 0.2, 1.0)
+    replace = conf > meas.confidence[y, x]
+    meas.depth[y[replace], x[replace]] = depth[ok][replace]
+    meas.confidence[y[replace], x[replace]] = conf[replace]
 
 
 def _depth_from_flow(forward, backward, K_a, K_b, R, t, gray_a) -> DepthMeasurement:
