@@ -232,7 +232,7 @@ class ClassicalReconstructor:
         built) only the other view, brought to that scale: the first is then ``None``."""
         if pair.model == "homography":
             view_ref, view_other = self._views_homography(ref, other, pair)
-            measured_ref = Deferred(lambda: (view_ref.depth,))
+            measured_ref = view_ref
         else:
             view_ref, view_other, measured_ref = self._views_3d(
                 ref, other, pair, fill_ref=ref_depth is None and self.options.fill_reference)
@@ -240,7 +240,7 @@ class ClassicalReconstructor:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
         # measured on ``ref``.
-        ratio = _median_ratio(ref_depth, measured_ref.value()[0])
+        ratio = _median_ratio(ref_depth, measured_ref.depth)
         if ratio is None:
             raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
         return None, view_other.rescaled(ratio)
@@ -282,8 +282,8 @@ class ClassicalReconstructor:
     # -- depth: full 3-D model -----------------------------------------------------------
     def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry, fill_ref: bool = True):
         """``(view_ref, view_other, measured_ref)``: both views with their depth filled (without
-        ``fill_ref``, the reference keeps only the depth the pair measured on it) and a
-        :class:`Deferred` of that measured depth ``(H, W)`` (0 where unmeasured) and its mask."""
+        ``fill_ref``, the reference keeps only the depth the pair measured on it) and the
+        reference's view with only that measured depth (0 where unmeasured)."""
         K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
         img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
         img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
@@ -308,14 +308,14 @@ class ClassicalReconstructor:
                                   (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
             return measured, (measured > 0).astype(np.float32)
 
-        measured_a = Deferred(measured_on_ref)
+        measured = Deferred(measured_on_ref)
+        unfilled_a = View(ref.pixels, camera_a, measured, measured, ref.name)
         if not fill_ref:
-            unfilled_a = View(ref.pixels, camera_a, measured_a, measured_a, ref.name)
-            return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), measured_a
+            return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), unfilled_a
         # The reference's fill waits for its first reader (pis3r.scene.Deferred): a stitch onto
         # the reference pastes its pixels. Each fill's two factorisations use both cores.
         return (self._filled_view(ref, img_a, meas_a, camera_a, deferred=True),
-                self._filled_view(other, img_b, meas_b, camera_b), measured_a)
+                self._filled_view(other, img_b, meas_b, camera_b), unfilled_a)
 
     def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera,
                      deferred: bool = False) -> View:

@@ -87,8 +87,9 @@ class Canvas:
 
     ``image``: ``(H, W, 3)`` float32; ``depth``: ``(H, W)`` float32 z in the reference
     frame (``inf`` where empty; computed when first read, since it needs the reference's own
-    depth, which a stitch does not otherwise read: :class:`pis3r.scene.Deferred`); ``source``: ``(H, W)`` int16 index of the view whose
-    surface won (``-1`` where empty); ``camera``: the canvas camera; ``ref_offset``:
+    depth, which a stitch does not otherwise read: :class:`pis3r.scene.Deferred`);
+    ``source``: ``(H, W)`` int16 index of the view whose surface won (``-1`` where empty);
+    ``camera``: the canvas camera; ``ref_offset``:
     ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
     ``dropped_points``: mesh vertices of rendered triangles that fell outside the capped
     canvas; ``under_reference``: ``(h, w, 3)`` what the other views put where the
