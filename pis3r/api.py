@@ -14,6 +14,7 @@ The pipeline, one stage per module: read (:mod:`pis3r.io`) -> reconstruct
 from __future__ import annotations
 
 import os
+from contextlib import nullcontext
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.render import Canvas, render_to_canvas
-from pis3r.warmup import warm_up_in_background
+from pis3r.warmup import single_threaded_blas, warm_up_in_background
 
 # Inputs above this are downscaled before anything else (memory and time grow
 # with pixels; the geometry does not need more).
@@ -65,19 +66,21 @@ def stitch(
     options = (options or StitchOptions()).replace(**overrides)
     timer = StageTimer(quiet=quiet)
     log = WarningLog(timer)
-    if options.backend != "vggt":
-        # The classical backend's one-off costs, paid while the photos are decoded and matched.
-        warm_up_in_background()
-    with log.capture():
-        with timer.stage("read images"):
-            photos = read_photos(images, log)
-        order = reference_first(len(photos), options.ref)
-        scene, backend, choice = reconstruct(photos, order, options, timer, log)
-        with timer.stage("parallax"):
-            parallax = scene.parallax or estimate_parallax(photos[order[0]].pixels, photos[order[1]].pixels)
-        timer.say(f"parallax: {parallax.label} (level {parallax.level:.2f})")
-        refs = scene.indices if options.ref == "all" else (order[0],)
-        composites = [composite(scene, index, options, timer) for index in refs]
+    classical = options.backend != "vggt"
+    with single_threaded_blas() if classical else nullcontext():
+        if classical:
+            # The classical backend's one-off costs, paid while the photos are decoded and matched.
+            warm_up_in_background()
+        with log.capture():
+            with timer.stage("read images"):
+                photos = read_photos(images, log)
+            order = reference_first(len(photos), options.ref)
+            scene, backend, choice = reconstruct(photos, order, options, timer, log)
+            with timer.stage("parallax"):
+                parallax = scene.parallax or estimate_parallax(photos[order[0]].pixels, photos[order[1]].pixels)
+            timer.say(f"parallax: {parallax.label} (level {parallax.level:.2f})")
+            refs = scene.indices if options.ref == "all" else (order[0],)
+            composites = [composite(scene, index, options, timer) for index in refs]
     results = [
         StitchResult(c.image, c.mask, c.canvas.camera, c.canvas.ref_offset, index, scene,
                      build_report(scene, backend, choice, parallax, c, log.lines, index, options))

@@ -34,6 +34,11 @@ class Deferred:
                 self._value, self._compute = self._compute(), None
         return self._value
 
+    @property
+    def computed(self) -> bool:
+        """Whether the value has been computed (a read has run ``compute()``)."""
+        return self._compute is None
+
     def __getstate__(self) -> dict:
         return {"value": self.value()}
 

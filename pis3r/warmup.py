@@ -1,4 +1,5 @@
-"""A process's one-off costs, paid on a thread while the first stage runs (issue 12).
+"""How the classical path spends a process's CPU: its one-off costs, paid on a thread while
+the first stage runs, and its BLAS threads (issue 12).
 
 The classical backend's first stage, finding features, spends about half a second on a 1 MP
 pair inside OpenCV with the GIL released. Meanwhile a thread builds OpenCV's CIE Lab tables
@@ -7,15 +8,23 @@ imports the solvers the later stages call (scipy's: about 0.5 s on 2 cores) and 
 headless OpenGL context the renderer draws with (EGL on Mesa: 0.1-0.3 s). A stage that needs
 one of them before the thread is done waits for it (OpenCV's own lock, Python's import lock,
 :mod:`pis3r.gl`'s lock): results do not change, only when the cost is paid.
+
+OpenBLAS runs one thread during a classical stitch (:func:`single_threaded_blas`): its calls
+there are small (descriptor products, the conjugate-gradient dot products of the depth fill)
+while pis3r's own threads keep both cores busy, and after each call OpenBLAS's helper thread
+spins for a while, taking a core from them: 1.3-1.9 of the 5-7 CPU seconds of a 0.67 MP pair.
 """
 
 from __future__ import annotations
 
 import importlib
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from pis3r import gl
 
@@ -47,3 +56,11 @@ def warm_up_in_background(modules: tuple[str, ...] = CLASSICAL_MODULES) -> threa
     thread = threading.Thread(target=warm_up, name="pis3r-warm-up")
     thread.start()
     return thread
+
+
+@contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """One OpenBLAS thread in every BLAS library loaded when the block starts (numpy's and
+    OpenCV's; scipy's once a stitch in this process has imported it), restored after it."""
+    with threadpool_limits(1, user_api="blas"):
+        yield

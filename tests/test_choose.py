@@ -94,13 +94,15 @@ def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypat
     so the forced homography is not reconstructed again and scores the same."""
     from pis3r.stitch import choose
 
-    rendered = []
-    original = choose._render_band
-    monkeypatch.setattr(choose, "_render_band", lambda candidate, *args: rendered.append(candidate) or
-                        original(candidate, *args))
+    reconstructed, rendered = [], []
+    band_scene, render_band = choose._band_scene, choose._render_band
+    monkeypatch.setattr(choose, "_band_scene", lambda candidate, *args: reconstructed.append(candidate) or
+                        band_scene(candidate, *args))
+    monkeypatch.setattr(choose, "_render_band", lambda scene, *args: rendered.append(scene.model) or
+                        render_band(scene, *args))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
-    assert rendered == [Candidate("auto"), Candidate("apap")]
+    assert reconstructed == [Candidate("auto"), Candidate("apap")] and rendered == ["homography", "apap"]
     assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography"),
                                                             Candidate("apap")]
     # The backend's test made a homography on the band: that, not the test, makes the stitch.

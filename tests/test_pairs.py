@@ -129,7 +129,7 @@ def test_asift_matches_a_view_too_oblique_for_sift():
     # Either detector can be asked for alone; SIFT alone never computes ASIFT's features.
     sift_only = PhotoFeatures(a.photo), PhotoFeatures(b.photo)
     assert consistent_matches(*sift_only, "SIFT").detector == "SIFT"
-    assert all(features._affine is None for features in sift_only)
+    assert not any(features._affine.computed for features in sift_only)
     asift_only = consistent_matches(*sift_only, "ASIFT")
     assert asift_only.detector == "ASIFT" and asift_only.inliers.sum() > 100
 
@@ -190,3 +190,32 @@ def test_models_of_one_rotation_share_its_rotation_fit(monkeypatch):
     assert len(calls) == 1 and homography.model == apap.model == "homography"
     np.testing.assert_array_equal(homography.R, apap.R)
     np.testing.assert_array_equal(homography.K_a, apap.K_a)
+
+
+def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(monkeypatch):
+    """Views are registered to the reference two at a time; both may need its ASIFT."""
+    import threading
+
+    import pis3r.reconstruct.pairs as pairs
+
+    calls, started = [], threading.Barrier(2)
+
+    def counted(gray):
+        calls.append(gray.shape)
+        return pairs.detect(gray)
+
+    monkeypatch.setattr(pairs, "detect_affine", counted)
+    photo = Photo(_texture("astronaut", 160), "ref.png")
+    features = PhotoFeatures(photo)
+    found = []
+
+    def ask():
+        started.wait()
+        found.append(features.affine)
+
+    threads = [threading.Thread(target=ask) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(calls) == 1 and found[0] is found[1]

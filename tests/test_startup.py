@@ -123,3 +123,34 @@ def test_off_linux_the_heap_is_left_as_it_is(monkeypatch):
 
     monkeypatch.setattr(pis3r.cli.sys, "platform", "win32")
     assert pis3r.cli.reuse_freed_memory() is False
+
+
+BLAS_THREADS_DURING_A_STITCH = r"""
+import numpy as np
+from skimage import data
+from threadpoolctl import threadpool_info, threadpool_limits
+import pis3r
+import pis3r.api
+
+def blas_threads():
+    return sorted({lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"})
+
+seen = {}
+choose_model = pis3r.api.choose_model
+def recording(*args, **kwargs):
+    seen["during"] = blas_threads()
+    return choose_model(*args, **kwargs)
+pis3r.api.choose_model = recording
+
+photo = data.astronaut()[::2, ::2]
+pair = [photo[20:180, 0:190].copy(), photo[30:190, 60:250].copy()]
+with threadpool_limits(2, user_api="blas"):
+    pis3r.stitch(pair, backend="classical")
+    print(seen["during"], blas_threads())
+"""
+
+
+def test_blas_runs_one_thread_during_a_classical_stitch_and_is_restored_after():
+    """OpenBLAS's idle helper thread spins and takes a core from pis3r's own threads: one
+    thread while a classical stitch runs, whatever the caller had again once it returns."""
+    assert _python("-c", BLAS_THREADS_DURING_A_STITCH).strip() == "[1] [2]"

@@ -45,6 +45,7 @@ from pis3r.reconstruct.focal import (
     plausibility_warning,
     rotation_focal,
 )
+from pis3r.scene import Deferred
 
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
@@ -78,13 +79,13 @@ class PhotoFeatures:
         # once, not by each (0.07-0.25 s per 12 MP photo).
         self.gray = to_gray_u8(photo.pixels)
         self.sift: Features = detect(self.gray)
-        self._affine: Features | None = None
+        # Once, behind a lock: the pairs of several views with the reference run two at a time,
+        # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
+        self._affine = Deferred(lambda: detect_affine(self.gray))
 
     @property
     def affine(self) -> Features:
-        if self._affine is None:
-            self._affine = detect_affine(self.gray)
-        return self._affine
+        return self._affine.value()
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ covers little but well, or much but poorly.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,6 +31,7 @@ from pis3r.io import Photo, downscaled
 from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL, DEPTH_FILLS
+from pis3r.scene import Scene
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.render import render_to_canvas
 
@@ -171,12 +173,25 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
     inner, margin, band = _hold_back_band(small[0])
     band_photos, memo = [inner, *small[1:]], {}
-    renders = []
-    for candidate in allowed:
-        # A scene of the homography model renders the pair's homography whichever candidate
-        # asked for it: the backend's own choice, when it is that, stands for the forced one.
-        same = [render for render in renders if candidate.model == "homography" and render[3] == "homography"]
-        renders.append(same[0] if same else _render_band(candidate, band_photos, band.shape, margin, base, memo))
+    scenes: list[Scene | str] = []
+    # The candidates are reconstructed here one after the other, as their shared memo and
+    # OpenCV's random state (both per thread) expect, while another thread renders the band
+    # of the one before: rendering is mostly Mesa's and OpenCV's threads, reconstructing
+    # mostly this one.
+    with ThreadPoolExecutor(1) as pool:
+        pending = []
+        for candidate in allowed:
+            # A scene of the homography model renders the pair's homography whichever candidate
+            # asked for it: the backend's own choice, when it is that, stands for the forced one.
+            same = [k for k, scene in enumerate(scenes) if candidate.model == "homography"
+                    and isinstance(scene, Scene) and scene.model == "homography"]
+            if same:
+                scenes.append(scenes[same[0]])
+                pending.append(pending[same[0]])
+                continue
+            scenes.append(_band_scene(candidate, band_photos, base, memo))
+            pending.append(pool.submit(_render_band, scenes[-1], band_photos[0], band.shape, margin))
+        renders = [future.result() for future in pending]
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
@@ -212,20 +227,26 @@ def _hold_back_band(ref: Photo) -> tuple[Photo, tuple[int, int], np.ndarray]:
     return inner, (bx, by), band
 
 
-def _render_band(candidate: Candidate, photos: list[Photo], shape: tuple[int, int], margin: tuple[int, int],
-                 base: ReconstructOptions, memo: dict) -> tuple[np.ndarray, np.ndarray, str, str]:
-    """What ``candidate`` predicts on the reference's grid ``shape`` from ``photos`` (the inner
-    part first, at ``margin`` in the reference): ``(h, w, 3)`` colours, ``(h, w)`` bool covered,
-    an error line when it cannot stitch them, and the scene's model (``""`` then). ``memo``
-    is shared by the candidates."""
-    height, width = shape
+def _band_scene(candidate: Candidate, photos: list[Photo], base: ReconstructOptions, memo: dict) -> Scene | str:
+    """The scene ``candidate`` makes of ``photos`` (the inner part of the reference first), or
+    the line saying why it cannot. ``memo`` is shared by the candidates."""
     try:
         # The band is rendered from the other views: the reference's depth is not filled.
         options = replace(candidate.backend_options(base), fill_reference=False)
-        scene = ClassicalReconstructor(options, memo).reconstruct(photos)
+        return ClassicalReconstructor(options, memo).reconstruct(photos)
     except Pis3rError as exc:
-        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), one_line(exc), ""
-    inner = photos[0]
+        return one_line(exc)
+
+
+def _render_band(scene: Scene | str, inner: Photo, shape: tuple[int, int],
+                 margin: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, str, str]:
+    """What ``scene`` (of ``inner``, the reference's inner part at ``margin``, and the other
+    views) predicts on the reference's grid ``shape``: ``(h, w, 3)`` colours, ``(h, w)`` bool
+    covered, the error line when ``scene`` is one (nothing covered then), and the scene's
+    model (``""`` then)."""
+    height, width = shape
+    if isinstance(scene, str):
+        return np.zeros((height, width, 3), np.float32), np.zeros(shape, bool), scene, ""
     # The canvas must reach the band on every side: it is the inner part grown by the band.
     scale = max(width / inner.width, height / inner.height) + 0.01
     canvas = render_to_canvas(scene, 0, scale)
