@@ -158,6 +158,37 @@ def test_a_chain_of_views_is_registered_whole_when_the_last_ones_miss_the_refere
     assert 10 * np.log10(1 / mse) > 25
 
 
+def _crops(starts: tuple[int, ...]) -> list[Photo]:
+    """300 px wide crops of one 1100 px wide picture, starting at ``starts``."""
+    picture = cv2.resize(data.astronaut(), (1100, 400), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+    return [Photo(picture[:, x:x + 300].copy(), f"crop{x}") for x in starts]
+
+
+def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_through_its_neighbour():
+    """The last crop shares 30 px with the reference (fewer than FEW_INLIERS consistent SIFT
+    matches) and 150 px with the middle one: it is placed through the middle one, and no
+    photo's ASIFT (seconds each) is computed."""
+    photos, memo = _crops((0, 150, 270)), {}
+    scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
+    assert scene.indices == (0, 1, 2) and scene.dropped == ()
+    assert not any(memo["features", id(photo)]._affine.computed for photo in photos)
+    assert ("matches", id(photos[0]), id(photos[2]), "auto") not in memo
+    # Shifts of the picture: the rotations about the vertical axis grow with the shift.
+    turn = [view.camera.R[0, 2] for view in scene.views]
+    assert turn[1] < 0 and turn[2] / turn[1] == pytest.approx(270 / 150, rel=0.1)
+
+
+def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift_too():
+    """The last crop shares 30 px with the reference and nothing with the other crop: after
+    the chain fails, it is matched with the reference by SIFT or ASIFT, whichever agrees more,
+    as a pair of two photos would be."""
+    photos, memo = _crops((300, 100, 570)), {}
+    scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
+    assert scene.indices == (0, 1, 2)
+    assert ("matches", id(photos[0]), id(photos[2]), "auto") in memo
+    assert memo["features", id(photos[0])]._affine.computed
+
+
 def test_a_view_that_overlaps_no_registered_view_is_dropped_with_the_reason():
     picture = cv2.resize(data.astronaut(), (700, 400), interpolation=cv2.INTER_AREA)
     unrelated = cv2.resize(data.coffee(), (300, 400), interpolation=cv2.INTER_AREA)

@@ -26,10 +26,12 @@ from pis3r.errors import InputError, NotEnoughOverlapError, Pis3rError, Reconstr
 from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
+from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
-from pis3r.reconstruct.pairs import ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches, estimate_pair
+from pis3r.reconstruct.pairs import (FEW_INLIERS, ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches,
+                                     estimate_pair)
 from pis3r.reconstruct.propagate import propagate_inverse_depth
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View
@@ -71,7 +73,8 @@ class ClassicalReconstructor:
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
         """Every photo registered to ``photos[0]``, directly or, when it does not overlap
-        it, through a chain of registered photos (:meth:`_attach_through_others`); with
+        it or too few of its SIFT matches with it agree, through a chain of registered photos
+        (:meth:`_attach_through_others`; ASIFT with ``photos[0]`` only where none places it); with
         three or more photos, one that overlaps no registered photo is dropped
         (``Scene.dropped``) instead of failing the rest. The model, parallax and match
         counts reported are the first registered pair's."""
@@ -101,28 +104,47 @@ class ClassicalReconstructor:
             reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
             raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
 
-        def register_to_reference(j: int):
+        def register_to_reference(j: int, sift_first: bool = False):
             # OpenCV's random state is per thread: seeded here, each pair is repeatable
             # whatever runs beside it.
             cv2.setRNGSeed(0)
             try:
+                detector = "SIFT" if sift_first else None
+                inliers = self._consistent_matches(features[0], features[j], detector).inliers.sum()
+                if sift_first and inliers < FEW_INLIERS:
+                    weak.add(j)
+                    return f"only {inliers} of its SIFT matches with {ref.name} agree", None
                 # Later pairs keep the first pair's reference focal.
                 pair = self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
-                                          True, True)
+                                          True, True, detector)
                 return pair, self._placed(self._views(ref, photos[j], pair, registered[0].depth)[1], pair, photos[j],
                                           ref, 0)
             except Pis3rError as exc:
                 return exc, None
 
-        # Given the first pair, the others are independent: two at a time.
-        with ThreadPoolExecutor(2) as pool:
-            for j, (pair, view_j) in zip(later, list(pool.map(register_to_reference, later))):
-                if view_j is None:
-                    failures[j] = str(pair)
-                    continue
-                warnings += pair.warnings
-                registered[j] = view_j
+        def register_all(views: list[int], sift_first: bool) -> None:
+            # Given the first pair, the others are independent: two at a time.
+            with ThreadPoolExecutor(2) as pool:
+                for j, (pair, view_j) in zip(views, list(pool.map(lambda j: register_to_reference(j, sift_first),
+                                                                  views))):
+                    if view_j is None:
+                        failures[j] = str(pair)
+                        continue
+                    warnings.extend(pair.warnings)
+                    registered[j] = view_j
+                    failures.pop(j, None)
+
+        # Later photos match the reference by SIFT alone first: one with fewer than FEW_INLIERS
+        # consistent matches is placed through the photos it shares more with, and only where
+        # none places it by ASIFT with the reference (seconds a photo), then chained again.
+        weak: set[int] = set()
+        register_all(later, self.options.detector == "auto")
         warnings += self._attach_through_others(photos, features, registered, failures)
+        if weak & failures.keys():
+            register_all(sorted(weak & failures.keys()), False)
+            warnings += self._attach_through_others(photos, features, registered, failures)
+        for j in failures:
+            failures[j] += "; nor does it overlap any other registered image"
         indices = sorted(registered)
         dropped = tuple(DroppedView(j, photos[j].name, reason) for j, reason in sorted(failures.items()))
         model, reason = first.model, first.model_reason
@@ -143,15 +165,18 @@ class ClassicalReconstructor:
         (:meth:`pis3r.scene.View.in_world_of`). Repeated while photos attach, so a chain of any
         length reaches the reference. ``registered`` and ``failures`` are updated in place;
         returns the warnings of the pairs that attached."""
-        warnings, attached, shared = [], True, {}
+        warnings, attached = [], True
         while failures and attached:
             attached = False
             for j in sorted(failures):
-                # Match counts are kept across rounds: a round only adds newly registered photos.
-                for i in registered:
-                    if i != 0 and (i, j) not in shared:
-                        shared[i, j] = len(match(features[i].sift, features[j].sift))
-                anchors = sorted((i for i in registered if i != 0), key=lambda i: -shared[i, j])
+                # Match counts are memoised: a later round or call only adds newly registered photos.
+                # Each count is one descriptor product and its nearest neighbours: two at a time.
+                shared = {i: ("shared", id(photos[i]), id(photos[j])) for i in registered if i != 0}
+                missing = [i for i, key in shared.items() if key not in self.memo]
+                with ThreadPoolExecutor(2) as pool:
+                    for i, found in zip(missing, pool.map(lambda i: match(features[i].sift, features[j].sift), missing)):
+                        self.memo[shared[i]] = len(found)
+                anchors = sorted(shared, key=lambda i: -self.memo[shared[i]])
                 for i in anchors[:CHAIN_ANCHORS]:
                     anchor = registered[i]
                     try:
@@ -165,8 +190,6 @@ class ClassicalReconstructor:
                     del failures[j]
                     attached = True
                     break
-        for j in failures:
-            failures[j] += "; nor does it overlap any other registered image"
         return warnings
 
     def detector(self, ref: Photo, other: Photo) -> str:
@@ -175,8 +198,9 @@ class ClassicalReconstructor:
         cv2.setRNGSeed(0)
         return self._consistent_matches(*self._features([ref, other])).detector
 
-    def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures) -> ConsistentMatches:
-        detector = self.options.detector
+    def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures,
+                            detector: str | None = None) -> ConsistentMatches:
+        detector = detector or self.options.detector
         return self._memoised(("matches", id(ref.photo), id(other.photo), detector),
                               lambda: consistent_matches(ref, other, detector))
 
@@ -196,10 +220,12 @@ class ClassicalReconstructor:
         return [self.memo["features", id(p)] for p in photos]
 
     def pair_geometry(self, ref: PhotoFeatures, other: PhotoFeatures, focal_ref: float | None = None,
-                      source: str = "", focal_is_final: bool = False, named: bool = False) -> PairGeometry:
+                      source: str = "", focal_is_final: bool = False, named: bool = False,
+                      detector: str | None = None) -> PairGeometry:
         """Cameras and model of one pair, no depth (:func:`pis3r.reconstruct.pairs.estimate_pair`);
-        ``focal_ref`` (from ``source``) is the reference's known focal, if any."""
-        found = self._consistent_matches(ref, other)
+        ``focal_ref`` (from ``source``) is the reference's known focal, if any; ``detector``:
+        the features matched (``None``: the options')."""
+        found = self._consistent_matches(ref, other, detector)
         if len(found.matches) < MIN_MATCHES:
             raise NotEnoughOverlapError(
                 f"these images do not overlap enough to stitch: {len(found.matches)} matches"
@@ -270,8 +296,8 @@ class ClassicalReconstructor:
             depth_a = np.ones((ref.height, ref.width), np.float32)
             depth_b = np.ones((other.height, other.width), np.float32)
         else:
-            depth_a = _plane_depth(pair.K_a, n, 1.0, ref.width, ref.height)
-            depth_b = _plane_depth(pair.K_b, R @ n, 1.0 + float(n @ (R.T @ t)), other.width, other.height)
+            depth_a = geometry.plane_depth(pair.K_a, n, 1.0, ref.width, ref.height)
+            depth_b = geometry.plane_depth(pair.K_b, R @ n, 1.0 + float(n @ (R.T @ t)), other.width, other.height)
         cam_a = Camera.identity(pair.K_a, ref.width, ref.height)
         cam_b = Camera(pair.K_b, R, t, other.width, other.height)
         return (
@@ -356,18 +382,6 @@ def _depth_edges(idepth: np.ndarray) -> np.ndarray:
     local_min -= local_max
     local_max *= -DEPTH_EDGE_JUMP
     return local_min < local_max
-
-
-def _plane_depth(K: np.ndarray, n: np.ndarray, d: float, width: int, height: int) -> np.ndarray:
-    """z-depth ``(H, W)`` of the plane ``n . X = d`` seen by camera ``K`` (0 where behind)."""
-    # A pixel's ray is K^-1 (u, v, 1), so n . ray = a u + b v + c with (a, b, c) = n K^-1: built
-    # by rows and columns apart, no (H, W, 3) rays (a 12 MP photo's cost 0.27 s a plane).
-    a, b, c = np.asarray(n, np.float64) @ np.linalg.inv(K)
-    denom = (a * np.arange(width))[None, :] + (b * np.arange(height) + c)[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.divide(d, denom)
-    depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
-    return depth.astype(np.float32)
 
 
 def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float | None:
