@@ -179,3 +179,17 @@ def test_the_backends_own_test_stands_for_the_model_it_made_on_the_band():
     assert BandScore(auto, 20.0, 1.0, scene_model="3d").tested == Candidate("3d", "planes")
     assert BandScore(Candidate("apap"), 20.0, 1.0, scene_model="apap").tested == Candidate("apap")
     assert BandScore(auto, 20.0, 1.0, scene_model="3d").to_dict()["band_model"] == "3d"
+
+
+def test_the_band_copies_features_are_detected_once_for_every_candidate(small_pair, monkeypatch):
+    """The band's two copies are detected while the photos are matched; every candidate's
+    reconstruction reuses them: four detections in all (two photos, two copies)."""
+    import pis3r.reconstruct.classical as classical
+
+    detected = []
+    original = classical.PhotoFeatures
+    monkeypatch.setattr(classical, "PhotoFeatures", lambda photo: detected.append(photo.pixels.shape) or
+                        original(photo))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
+    assert len(choice.scores) == 3 and len(detected) == 4

@@ -233,11 +233,11 @@ def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monke
 
     monkeypatch.setattr(classical, "PhotoFeatures", counted)
     reconstructor = ClassicalReconstructor(ReconstructOptions())
-    found = reconstructor._features([photos[0], photos[1], photos[0], photos[2]])
+    found = reconstructor.features([photos[0], photos[1], photos[0], photos[2]])
     assert sorted(detected) == ["flipped", "ref", "tgt"] and len(threads) == 2
     assert found[0] is found[2]
     for photo, features in zip([photos[0], photos[1], photos[2]], [found[0], found[1], found[3]]):
         alone = PhotoFeatures(photo).sift
         np.testing.assert_array_equal(features.sift.points, alone.points)
         np.testing.assert_array_equal(features.sift.descriptors, alone.descriptors)
-    assert reconstructor._features(photos[1:2])[0] is found[1] and len(detected) == 3
+    assert reconstructor.features(photos[1:2])[0] is found[1] and len(detected) == 3

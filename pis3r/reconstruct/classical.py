@@ -80,7 +80,7 @@ class ClassicalReconstructor:
         counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
-        features = self._features(photos)
+        features = self.features(photos)
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
         registered: dict[int, View] = {}
@@ -196,7 +196,7 @@ class ClassicalReconstructor:
         """``SIFT`` or ``ASIFT``: the features that match ``ref`` and ``other``; both are
         memoised, so a reconstruction of the same photo objects with this memo reuses them."""
         cv2.setRNGSeed(0)
-        return self._consistent_matches(*self._features([ref, other])).detector
+        return self._consistent_matches(*self.features([ref, other])).detector
 
     def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures,
                             detector: str | None = None) -> ConsistentMatches:
@@ -207,10 +207,10 @@ class ClassicalReconstructor:
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
         cv2.setRNGSeed(0)
-        return self.pair_geometry(*self._features([ref, other]), *self._known_focal(ref),
+        return self.pair_geometry(*self.features([ref, other]), *self._known_focal(ref),
                                   focal_is_final=bool(self.options.focal))
 
-    def _features(self, photos: list[Photo]) -> list[PhotoFeatures]:
+    def features(self, photos: list[Photo]) -> list[PhotoFeatures]:
         """Each photo's features, memoised; those not yet found are detected two photos at a
         time (OpenCV's SIFT releases the GIL and leaves a core idle for part of each photo)."""
         missing = list({id(p): p for p in photos if ("features", id(p)) not in self.memo}.values())

@@ -166,13 +166,17 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
-    detector = ClassicalReconstructor(base, memo).detector(photos[0], photos[1])
-    base = replace(base, detector=detector)
     # The model is chosen once per stitch: on the reference and the next photo, so the test
     # costs the same for two photos or eleven.
     small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
     inner, margin, band = _hold_back_band(small[0])
-    band_photos, memo = [inner, *small[1:]], {}
+    band_photos, band_memo = [inner, *small[1:]], {}
+    # The band's copies are detected while the photos are matched, which leaves a core idle.
+    with ThreadPoolExecutor(1) as pool:
+        copies = pool.submit(ClassicalReconstructor(base, band_memo).features, band_photos)
+        detector = ClassicalReconstructor(base, memo).detector(photos[0], photos[1])
+        copies.result()
+    base = replace(base, detector=detector)
     scenes: list[Scene | str] = []
     # The candidates are reconstructed here one after the other, as their shared memo and
     # OpenCV's random state (both per thread) expect, while another thread renders the band
@@ -189,7 +193,7 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
                 scenes.append(scenes[same[0]])
                 pending.append(pending[same[0]])
                 continue
-            scenes.append(_band_scene(candidate, band_photos, base, memo))
+            scenes.append(_band_scene(candidate, band_photos, base, band_memo))
             pending.append(pool.submit(_render_band, scenes[-1], band_photos[0], band.shape, margin))
         renders = [future.result() for future in pending]
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
