@@ -104,16 +104,22 @@ class ClassicalReconstructor:
             reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
             raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
 
+        # Later photos match the reference by SIFT alone first: one with fewer than FEW_INLIERS
+        # consistent matches (``weak``) is placed through the photos it shares more with, and only
+        # where none places it by ASIFT with the reference (seconds a photo), then chained again.
+        weak: set[int] = set()
+
         def register_to_reference(j: int, sift_first: bool = False):
             # OpenCV's random state is per thread: seeded here, each pair is repeatable
             # whatever runs beside it.
             cv2.setRNGSeed(0)
             try:
                 detector = "SIFT" if sift_first else None
-                inliers = self._consistent_matches(features[0], features[j], detector).inliers.sum()
-                if sift_first and inliers < FEW_INLIERS:
-                    weak.add(j)
-                    return f"only {inliers} of its SIFT matches with {ref.name} agree", None
+                if sift_first:
+                    inliers = self._consistent_matches(features[0], features[j], detector).inliers.sum()
+                    if inliers < FEW_INLIERS:
+                        weak.add(j)
+                        return f"only {inliers} of its SIFT matches with {ref.name} agree", None
                 # Later pairs keep the first pair's reference focal.
                 pair = self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
                                           True, True, detector)
@@ -134,10 +140,6 @@ class ClassicalReconstructor:
                     registered[j] = view_j
                     failures.pop(j, None)
 
-        # Later photos match the reference by SIFT alone first: one with fewer than FEW_INLIERS
-        # consistent matches is placed through the photos it shares more with, and only where
-        # none places it by ASIFT with the reference (seconds a photo), then chained again.
-        weak: set[int] = set()
         register_all(later, self.options.detector == "auto")
         warnings += self._attach_through_others(photos, features, registered, failures)
         if weak & failures.keys():
@@ -171,12 +173,12 @@ class ClassicalReconstructor:
             for j in sorted(failures):
                 # Match counts are memoised: a later round or call only adds newly registered photos.
                 # Each count is one descriptor product and its nearest neighbours: two at a time.
-                shared = {i: ("shared", id(photos[i]), id(photos[j])) for i in registered if i != 0}
-                missing = [i for i, key in shared.items() if key not in self.memo]
+                count_keys = {i: ("shared", id(photos[i]), id(photos[j])) for i in registered if i != 0}
+                missing = [i for i, key in count_keys.items() if key not in self.memo]
                 with ThreadPoolExecutor(2) as pool:
                     for i, found in zip(missing, pool.map(lambda i: match(features[i].sift, features[j].sift), missing)):
-                        self.memo[shared[i]] = len(found)
-                anchors = sorted(shared, key=lambda i: -self.memo[shared[i]])
+                        self.memo[count_keys[i]] = len(found)
+                anchors = sorted(count_keys, key=lambda i: -self.memo[count_keys[i]])
                 for i in anchors[:CHAIN_ANCHORS]:
                     anchor = registered[i]
                     try:
