@@ -12,6 +12,7 @@ image), for pairs where plain SIFT finds too few consistent matches.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -199,11 +200,35 @@ def _exact_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, k: int):
     For ``k = 2`` the way back comes from the same product (:func:`_back_of_nearest`: only
     the rows :func:`match` reads); otherwise from its own product, since a partial sort down
     the columns of the first is several times slower (non-contiguous reads)."""
-    similarity = desc_a @ desc_b.T
+    similarity = _similarity(desc_a, desc_b)
     forward = _nearest(similarity, k)
     if k != 2:
-        return forward, _nearest(desc_b @ desc_a.T, k)
+        return forward, _nearest(_similarity(desc_b, desc_a), k)
     return forward, _back_of_nearest(similarity, forward[1][:, 0])
+
+
+# Products of at least this many entries are computed by two threads, about half the rows
+# each: a stitch limits BLAS to one thread (pis3r.warmup), and the other core is idle while
+# the photos' descriptors are matched. The split falls on a multiple of SPLIT_ROWS: OpenBLAS
+# blocks rows by 48 on the machines measured, and a block of rows starting there is exactly
+# those rows of the whole product; elsewhere entries may differ in their last bit, which
+# the distance floor (DISTANCE_RESOLUTION) absorbs.
+SPLIT_PRODUCT_ENTRIES = 1_000_000
+SPLIT_ROWS = 384
+
+
+def _similarity(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
+    """``(N, M)`` float32 products of descriptors ``desc_a`` ``(N, 128)`` and ``desc_b`` ``(M, 128)``
+    (``desc_a @ desc_b.T``)."""
+    half = round(len(desc_a) / 2 / SPLIT_ROWS) * SPLIT_ROWS
+    if len(desc_a) * len(desc_b) < SPLIT_PRODUCT_ENTRIES or half == 0:
+        return desc_a @ desc_b.T
+    out = np.empty((len(desc_a), len(desc_b)), np.result_type(desc_a, desc_b))
+    with ThreadPoolExecutor(1) as pool:
+        other = pool.submit(np.matmul, desc_a[half:], desc_b.T, out=out[half:])
+        np.matmul(desc_a[:half], desc_b.T, out=out[:half])
+        other.result()
+    return out
 
 
 def _back_of_nearest(similarity: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -90,8 +90,9 @@ def test_the_best_band_score_makes_the_stitch_and_the_report_lists_every_candida
 
 
 def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypatch):
-    """A shift of the image plane: the backend's own test already picks the homography model,
-    so the forced homography is not reconstructed again and scores the same."""
+    """A shift of the image plane: the backend's own test picks the homography model too, so
+    one band render stands for both and they score the same. The warps are reconstructed
+    first (their bands render while a 3-D scene would be built)."""
     from pis3r.stitch import choose
 
     reconstructed, rendered = [], []
@@ -102,7 +103,8 @@ def test_the_backends_homography_stands_for_the_forced_one(small_pair, monkeypat
                         render_band(scene, *args))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
-    assert reconstructed == [Candidate("auto"), Candidate("apap")] and rendered == ["homography", "apap"]
+    assert reconstructed == [Candidate("homography"), Candidate("apap"), Candidate("auto")]
+    assert rendered == ["homography", "apap"]
     assert [score.candidate for score in choice.scores] == [Candidate("auto"), Candidate("homography"),
                                                             Candidate("apap")]
     # The backend's test made a homography on the band: that, not the test, makes the stitch.
@@ -193,3 +195,21 @@ def test_the_band_copies_features_are_detected_once_for_every_candidate(small_pa
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
     assert len(choice.scores) == 3 and len(detected) == 4
+
+
+def test_later_photos_are_detected_during_the_band_test_and_reused(small_pair, monkeypatch):
+    """With a third photo, its features are detected on a thread while the band is tested,
+    into the stitch's memo: the reconstruction that follows detects nothing again (five
+    detections in all: three photos, two band copies)."""
+    import pis3r.reconstruct.classical as classical
+
+    detected = []
+    original = classical.PhotoFeatures
+    monkeypatch.setattr(classical, "PhotoFeatures", lambda photo: detected.append(photo.name) or original(photo))
+    third = np.ascontiguousarray(small_pair[1][:, ::-1])
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip((*small_pair, third), "abc")]
+    memo: dict = {}
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo=memo)
+    assert ("features", id(photos[2])) in memo
+    classical.ClassicalReconstructor(choice.chosen.backend_options(ReconstructOptions()), memo).features(photos)
+    assert sorted(detected) == ["a", "a", "b", "b", "c"]

@@ -171,7 +171,7 @@ def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_thr
     photos, memo = _crops((0, 150, 270)), {}
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2) and scene.dropped == ()
-    assert not any(memo["features", id(photo)]._affine.computed for photo in photos)
+    assert not any(memo["features", id(photo)].value()._affine.computed for photo in photos)
     assert ("matches", id(photos[0]), id(photos[2]), "auto") not in memo
     # Shifts of the picture: the rotations about the vertical axis grow with the shift.
     turn = [view.camera.R[0, 2] for view in scene.views]
@@ -186,7 +186,7 @@ def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
     assert ("matches", id(photos[0]), id(photos[2]), "auto") in memo
-    assert memo["features", id(photos[0])]._affine.computed
+    assert memo["features", id(photos[0])].value()._affine.computed
 
 
 def test_a_view_that_overlaps_no_registered_view_is_dropped_with_the_reason():

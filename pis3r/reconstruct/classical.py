@@ -15,8 +15,10 @@ Works offline on any machine. For the reference (view 0) and every other view:
 
 from __future__ import annotations
 
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -37,9 +39,6 @@ from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View
 
 WORK_MAX_SIDE = 640
-# Relative jump of inverse depth between neighbours above which a pixel sits on a
-# depth edge: its point would be a "flying pixel" between fore- and background.
-DEPTH_EDGE_JUMP = 0.08
 # A view that does not overlap the reference tries this many registered views (those it
 # shares the most matches with) before it is dropped.
 CHAIN_ANCHORS = 3
@@ -214,12 +213,25 @@ class ClassicalReconstructor:
 
     def features(self, photos: list[Photo]) -> list[PhotoFeatures]:
         """Each photo's features, memoised; those not yet found are detected two photos at a
-        time (OpenCV's SIFT releases the GIL and leaves a core idle for part of each photo)."""
-        missing = list({id(p): p for p in photos if ("features", id(p)) not in self.memo}.values())
+        time (OpenCV's SIFT releases the GIL and leaves a core idle for part of each photo), and
+        those being detected elsewhere (:meth:`detect_in_background`) waited for."""
+        found = self._detections(photos)
+        pending = list({id(d): d for d in found if not d.computed}.values())
         with ThreadPoolExecutor(2) as pool:
-            for photo, found in zip(missing, list(pool.map(PhotoFeatures, missing))):
-                self.memo["features", id(photo)] = found
-        return [self.memo["features", id(p)] for p in photos]
+            list(pool.map(Deferred.value, pending))
+        return [d.value() for d in found]
+
+    def detect_in_background(self, photos: list[Photo]) -> threading.Thread:
+        """Start detecting the features of ``photos``, one at a time, on a thread (returned):
+        what a later :meth:`features` reads, found while the held-back band test leaves a core
+        idle part of the time."""
+        thread = threading.Thread(target=lambda: [d.value() for d in self._detections(photos)],
+                                  name="pis3r-features")
+        thread.start()
+        return thread
+
+    def _detections(self, photos: list[Photo]) -> list[Deferred]:
+        return [self.memo.setdefault(("features", id(p)), Deferred(partial(PhotoFeatures, p))) for p in photos]
 
     def pair_geometry(self, ref: PhotoFeatures, other: PhotoFeatures, focal_ref: float | None = None,
                       source: str = "", focal_is_final: bool = False, named: bool = False,
@@ -268,7 +280,7 @@ class ClassicalReconstructor:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
         # measured on ``ref``.
-        ratio = _median_ratio(ref_depth, measured_ref.depth)
+        ratio = geometry.median_depth_ratio(ref_depth, measured_ref.depth)
         if ratio is None:
             raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
         return None, view_other.rescaled(ratio)
@@ -359,7 +371,7 @@ class ClassicalReconstructor:
             dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=method)
             dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
             depth = np.divide(1.0, dense, dtype=np.float32)  # in place after: 12 MP temporaries are costly
-            depth[_depth_edges(dense)] = 0.0
+            depth[geometry.depth_edges(dense)] = 0.0
             conf[~(depth > 0)] = 0.0  # the fill's own float32 array (or its resized copy)
             return depth, conf
 
@@ -374,21 +386,3 @@ def _to_full_resolution(idepth: np.ndarray, conf: np.ndarray, width: int, height
         cv2.resize(idepth, (width, height), interpolation=cv2.INTER_LINEAR),
         cv2.resize(conf, (width, height), interpolation=cv2.INTER_LINEAR),
     )
-
-
-def _depth_edges(idepth: np.ndarray) -> np.ndarray:
-    """``(H, W)`` bool: pixels whose inverse depth jumps by more than DEPTH_EDGE_JUMP to a neighbour."""
-    local_max = cv2.dilate(idepth, np.ones((3, 3), np.uint8))
-    local_min = cv2.erode(idepth, np.ones((3, 3), np.uint8))
-    # max - min > JUMP * max in place, as min - max < -JUMP * max: exactly the same comparison.
-    local_min -= local_max
-    local_max *= -DEPTH_EDGE_JUMP
-    return local_min < local_max
-
-
-def _median_ratio(reference: np.ndarray, other: np.ndarray) -> float | None:
-    """Median of ``reference / other`` where both depths exist; None with too little support."""
-    both = (reference > 0) & (other > 0)
-    if both.sum() < 100:
-        return None
-    return float(np.median(reference[both] / other[both]))

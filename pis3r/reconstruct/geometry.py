@@ -1,5 +1,6 @@
 """Two-view geometry from matches: robust fits, the relative pose with its focal refined,
-the homography's decompositions, triangulation.
+the homography's decompositions, triangulation; depth maps of a plane, their edges and the
+scale between two of them.
 
 All pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)``.
 """
@@ -23,6 +24,9 @@ FOCAL_RANGE = (0.3, 5.0)
 # 2 off the prior costs about as much as three matches 1 px off their epipolar lines, so it
 # decides only where the matches leave the focal free.
 FOCAL_PRIOR_WEIGHT = 3.0
+# Relative jump of inverse depth between neighbours above which a pixel sits on a
+# depth edge: its point would be a "flying pixel" between fore- and background.
+DEPTH_EDGE_JUMP = 0.08
 
 
 def pixel_scale(width: int, height: int) -> float:
@@ -295,3 +299,21 @@ def plane_depth(K: np.ndarray, n: np.ndarray, d: float, width: int, height: int)
         depth = np.divide(d, denom)
     depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
     return depth.astype(np.float32)
+
+
+def depth_edges(idepth: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: pixels whose inverse depth jumps by more than DEPTH_EDGE_JUMP to a neighbour."""
+    local_max = cv2.dilate(idepth, np.ones((3, 3), np.uint8))
+    local_min = cv2.erode(idepth, np.ones((3, 3), np.uint8))
+    # max - min > JUMP * max in place, as min - max < -JUMP * max: exactly the same comparison.
+    local_min -= local_max
+    local_max *= -DEPTH_EDGE_JUMP
+    return local_min < local_max
+
+
+def median_depth_ratio(reference: np.ndarray, other: np.ndarray) -> float | None:
+    """Median of ``reference / other`` where both depths exist; None with too little support."""
+    both = (reference > 0) & (other > 0)
+    if both.sum() < 100:
+        return None
+    return float(np.median(reference[both] / other[both]))

@@ -21,7 +21,7 @@ covers little but well, or much but poorly.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -50,6 +50,8 @@ BAND_VIEWS = 2
 # close to a coin toss where they differ little on the band, and a wrong pick costs dB
 # (see the README).
 MODEL_CHOICES = ("auto", "band", "homography", "apap", "3d")
+# The candidates that need no depth: one homography, or APAP's local homographies.
+WARP_MODELS = ("homography", "apap")
 DEFAULT_MODEL = "auto"
 # The local homographies must predict the band better than every other candidate by this
 # much (dB) to make the stitch: they have hundreds of parameters to a homography's eight,
@@ -162,7 +164,8 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     band, ``chosen`` is None: the backend decides. ``memo``: that of the reconstruction of
     ``photos`` that will make the stitch (:class:`ClassicalReconstructor`): the features
     and matches of the first two photos, which say which detector the band uses, are
-    computed into it once."""
+    computed into it once, and the other photos' features detected into it while the band
+    test runs."""
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
@@ -176,26 +179,30 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
         copies = pool.submit(ClassicalReconstructor(base, band_memo).features, band_photos)
         detector = ClassicalReconstructor(base, memo).detector(photos[0], photos[1])
         copies.result()
+    if memo is not None and len(photos) > BAND_VIEWS:
+        # The other photos' features, which the stitch reads next, are found meanwhile on a
+        # core the band test leaves idle part of the time.
+        ClassicalReconstructor(base, memo).detect_in_background(photos[BAND_VIEWS:])
     base = replace(base, detector=detector)
-    scenes: list[Scene | str] = []
     # The candidates are reconstructed here one after the other, as their shared memo and
-    # OpenCV's random state (both per thread) expect, while another thread renders the band
-    # of the one before: rendering is mostly Mesa's and OpenCV's threads, reconstructing
-    # mostly this one.
+    # OpenCV's random state (both per thread) expect, while another thread renders the bands
+    # of those before: rendering is mostly Mesa's and OpenCV's threads, reconstructing mostly
+    # this one. The warps' scenes take hundredths of a second, a 3-D scene tenths: built first,
+    # their bands render while the 3-D scenes are built. Every estimate starts from one seed
+    # and shares the memo (pis3r.reconstruct.pairs.estimate_pair), so the order changes no scene.
+    order = sorted(range(len(allowed)), key=lambda k: allowed[k].model not in WARP_MODELS)
+    scenes: dict[int, Scene | str] = {}
+    pending: dict[int, Future] = {}
     with ThreadPoolExecutor(1) as pool:
-        pending = []
-        for candidate in allowed:
+        for k in order:
+            scene = _band_scene(allowed[k], band_photos, base, band_memo)
             # A scene of the homography model renders the pair's homography whichever candidate
-            # asked for it: the backend's own choice, when it is that, stands for the forced one.
-            same = [k for k, scene in enumerate(scenes) if candidate.model == "homography"
-                    and isinstance(scene, Scene) and scene.model == "homography"]
-            if same:
-                scenes.append(scenes[same[0]])
-                pending.append(pending[same[0]])
-                continue
-            scenes.append(_band_scene(candidate, band_photos, base, band_memo))
-            pending.append(pool.submit(_render_band, scenes[-1], band_photos[0], band.shape, margin))
-        renders = [future.result() for future in pending]
+            # asked for it: one render stands for the backend's own choice and the forced one.
+            same = [i for i, other in scenes.items() if _is_homography(scene) and _is_homography(other)]
+            scenes[k] = scene
+            pending[k] = pending[same[0]] if same else pool.submit(_render_band, scene, band_photos[0], band.shape,
+                                                                   margin)
+        renders = [pending[k].result() for k in range(len(allowed))]
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
@@ -207,6 +214,10 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     if not math.isfinite(scores[best].psnr):
         return ModelChoice(None, scores, detector)
     return ModelChoice(scores[best].tested, scores, detector)
+
+
+def _is_homography(scene: Scene | str) -> bool:
+    return isinstance(scene, Scene) and scene.model == "homography"
 
 
 def best_score(scores: tuple[BandScore, ...]) -> int:

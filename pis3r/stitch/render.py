@@ -32,6 +32,7 @@ Which surfaces enter the canvas (on top of the mesh's cut rule):
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 
 import cv2
@@ -134,57 +135,69 @@ def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
     """Every other view's cut mesh in the reference camera (the rules of the module
     docstring applied), and its :class:`SurfaceCounts`."""
     ref = scene.views[ref_index].camera
-    meshes = []
-    for index, view in enumerate(scene.views):
-        if index == ref_index:
-            continue
-        if view.warp is not None and view.warp.onto == scene.indices[ref_index]:
-            # Placed by its local homographies, not through depth: the whole photo is a surface
-            # at unit depth (the plane of a homography has a horizon; the warp does not).
-            mesh = view_mesh(replace(view, depth=np.ones_like(view.depth)), MESH_MAX_SIDE)
-            meshes.append((index, mesh, None, ref.focal / view.camera.focal))
-            continue
-        mesh = view_mesh(view, MESH_MAX_SIDE)
-        cam = view.camera
-        # view camera -> reference camera: x_ref = R_rel x_view + t_rel with R_rel = R_ref R_view^T
-        R_rel = ref.R @ cam.R.T
-        t_rel = ref.t - R_rel @ cam.t
-        points = mesh.points @ R_rel.T.astype(np.float32) + t_rel.astype(np.float32)
-        meshes.append((index, mesh, points, ref.focal / cam.focal))
-    z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes
-                            if points is not None] or [[]])
-    positive = z_all[z_all > 0]
-    min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
+    others = [index for index in range(len(scene.views)) if index != ref_index]
+    # Each view's surface is its own, but for the nearest depth any of them may have: two views
+    # at a time (numpy releases the GIL on their grids' arrays).
+    with ThreadPoolExecutor(2) as pool:
+        meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
+        z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes
+                                if points is not None] or [[]])
+        positive = z_all[z_all > 0]
+        min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
+        cut = list(pool.map(lambda placed: _cut_surface(scene, ref, placed, min_z, max_stretch), meshes))
+    return [surface for surface, _ in cut], [counts for _, counts in cut]
 
-    surfaces, counts = [], []
-    for index, mesh, points, focal_ratio in meshes:
-        if points is None:
-            z = np.ones(mesh.points.shape[:2], np.float32)
-            xy = scene.views[index].warp.apply(mesh.pixels).reshape(z.shape + (2,))
-        else:
-            z = points[..., 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
-                               ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
-        in_front = np.all(grid_corners((z > min_z) & np.isfinite(xy).all(axis=-1)), axis=0)
-        canvas_area = signed_area(*grid_corners(xy))
-        front_facing = canvas_area > 0
-        # Both triangles of a grid block have half its area in source pixels.
-        source_area = 0.5 * np.diff(mesh.ys)[:, None] * np.diff(mesh.xs)[None, :]
-        modest = canvas_area <= (max_stretch * focal_ratio) ** 2 * source_area
-        kept = mesh.keep & in_front
-        behind = int((mesh.keep & ~in_front).sum())
-        back_facing = int((kept & ~front_facing).sum())
-        kept &= front_facing
-        stretched = int((kept & ~modest).sum())
-        kept &= modest
-        counts.append(SurfaceCounts(
-            view=index, meshed=mesh.keep.size, cut=mesh.cut, behind=behind, back_facing=back_facing,
-            stretched=stretched, rendered=int(kept.sum()),
-        ))
-        faces = _faces_coarse_under_reference(kept, xy, ref.width, ref.height)
-        surfaces.append(_ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, faces))
-    return surfaces, counts
+
+def _mesh_in_reference(scene: Scene, index: int, ref_index: int):
+    """``(index, mesh, points, focal ratio)``: view ``index``'s mesh, its points ``(rows, cols, 3)``
+    in the camera of view ``ref_index`` (None for a view placed by local homographies onto
+    it) and the reference's focal over the view's."""
+    ref, view = scene.views[ref_index].camera, scene.views[index]
+    if view.warp is not None and view.warp.onto == scene.indices[ref_index]:
+        # Placed by its local homographies, not through depth: the whole photo is a surface
+        # at unit depth (the plane of a homography has a horizon; the warp does not).
+        mesh = view_mesh(replace(view, depth=np.ones_like(view.depth)), MESH_MAX_SIDE)
+        return index, mesh, None, ref.focal / view.camera.focal
+    mesh = view_mesh(view, MESH_MAX_SIDE)
+    cam = view.camera
+    # view camera -> reference camera: x_ref = R_rel x_view + t_rel with R_rel = R_ref R_view^T
+    R_rel = ref.R @ cam.R.T
+    t_rel = ref.t - R_rel @ cam.t
+    points = mesh.points @ R_rel.T.astype(np.float32) + t_rel.astype(np.float32)
+    return index, mesh, points, ref.focal / cam.focal
+
+
+def _cut_surface(scene: Scene, ref: Camera, placed, min_z: float, max_stretch: float):
+    """``(_ViewSurface, SurfaceCounts)`` of one view's mesh ``placed`` (:func:`_mesh_in_reference`)
+    in the reference camera ``ref``: its faces nearer than ``min_z``, back-facing or stretched
+    beyond ``max_stretch`` cut."""
+    index, mesh, points, focal_ratio = placed
+    if points is None:
+        z = np.ones(mesh.points.shape[:2], np.float32)
+        xy = scene.views[index].warp.apply(mesh.pixels).reshape(z.shape + (2,))
+    else:
+        z = points[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
+                           ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
+    in_front = np.all(grid_corners((z > min_z) & np.isfinite(xy).all(axis=-1)), axis=0)
+    canvas_area = signed_area(*grid_corners(xy))
+    front_facing = canvas_area > 0
+    # Both triangles of a grid block have half its area in source pixels.
+    source_area = 0.5 * np.diff(mesh.ys)[:, None] * np.diff(mesh.xs)[None, :]
+    modest = canvas_area <= (max_stretch * focal_ratio) ** 2 * source_area
+    kept = mesh.keep & in_front
+    behind = int((mesh.keep & ~in_front).sum())
+    back_facing = int((kept & ~front_facing).sum())
+    kept &= front_facing
+    stretched = int((kept & ~modest).sum())
+    kept &= modest
+    counts = SurfaceCounts(
+        view=index, meshed=mesh.keep.size, cut=mesh.cut, behind=behind, back_facing=back_facing,
+        stretched=stretched, rendered=int(kept.sum()),
+    )
+    faces = _faces_coarse_under_reference(kept, xy, ref.width, ref.height)
+    return _ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, faces), counts
 
 
 def _faces_coarse_under_reference(kept: np.ndarray, xy: np.ndarray, width: int, height: int) -> np.ndarray:
