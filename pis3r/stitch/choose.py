@@ -174,15 +174,18 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
     inner, margin, band = _hold_back_band(small[0])
     band_photos, band_memo = [inner, *small[1:]], {}
-    # The band's copies are detected while the photos are matched, which leaves a core idle.
+    # The photos are detected on both cores; then the band's copies while the photos are
+    # matched, which leaves a core idle.
+    stitching = ClassicalReconstructor(base, memo)
+    stitching.features(photos[:BAND_VIEWS])
     with ThreadPoolExecutor(1) as pool:
         copies = pool.submit(ClassicalReconstructor(base, band_memo).features, band_photos)
-        detector = ClassicalReconstructor(base, memo).detector(photos[0], photos[1])
+        detector = stitching.detector(photos[0], photos[1])
         copies.result()
     if memo is not None and len(photos) > BAND_VIEWS:
         # The other photos' features, which the stitch reads next, are found meanwhile on a
         # core the band test leaves idle part of the time.
-        ClassicalReconstructor(base, memo).detect_in_background(photos[BAND_VIEWS:])
+        stitching.detect_in_background(photos[BAND_VIEWS:])
     base = replace(base, detector=detector)
     # The candidates are reconstructed here one after the other, as their shared memo and
     # OpenCV's random state (both per thread) expect, while another thread renders the bands
