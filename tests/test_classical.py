@@ -241,3 +241,32 @@ def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monke
         np.testing.assert_array_equal(features.sift.points, alone.points)
         np.testing.assert_array_equal(features.sift.descriptors, alone.descriptors)
     assert reconstructor.features(photos[1:2])[0] is found[1] and len(detected) == 3
+
+
+def test_a_background_detection_that_fails_is_left_to_its_reader(analytic_pair, monkeypatch):
+    """A photo whose features cannot be found on the background thread raises nothing there
+    (no traceback) and the photos after it are still detected; the stitch's own read computes
+    it again and raises in the caller's thread."""
+    import threading
+
+    import pis3r.reconstruct.classical as classical
+    from pis3r.reconstruct.pairs import PhotoFeatures
+
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    photos = [Photo(tgt_img, "broken"), Photo(ref_img, "ref")]
+    calls, escaped = [], []
+
+    def failing(photo):
+        calls.append(photo.name)
+        if photo.name == "broken":
+            raise ValueError("no features")
+        return PhotoFeatures(photo)
+
+    monkeypatch.setattr(classical, "PhotoFeatures", failing)
+    monkeypatch.setattr(threading, "excepthook", escaped.append)
+    reconstructor = ClassicalReconstructor(ReconstructOptions())
+    reconstructor.detect_in_background(photos).join()
+    assert calls == ["broken", "ref"] and not escaped
+    with pytest.raises(ValueError, match="no features"):
+        reconstructor.features(photos)
+    assert calls == ["broken", "ref", "broken"]

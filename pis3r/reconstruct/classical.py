@@ -224,9 +224,16 @@ class ClassicalReconstructor:
     def detect_in_background(self, photos: list[Photo]) -> threading.Thread:
         """Start detecting the features of ``photos``, one at a time, on a thread (returned):
         what a later :meth:`features` reads, found while the held-back band test leaves a core
-        idle part of the time."""
-        thread = threading.Thread(target=lambda: [d.value() for d in self._detections(photos)],
-                                  name="pis3r-features")
+        idle part of the time. A photo that fails is left to that reader, which reports it."""
+
+        def detect() -> None:
+            for detection in self._detections(photos):
+                try:
+                    detection.value()
+                except Exception:  # the reader computes it again and raises
+                    continue
+
+        thread = threading.Thread(target=detect, name="pis3r-features")
         thread.start()
         return thread
 

@@ -175,7 +175,7 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     inner, margin, band = _hold_back_band(small[0])
     band_photos, band_memo = [inner, *small[1:]], {}
     # The photos are detected on both cores; then the band's copies while the photos are
-    # matched, which leaves a core idle.
+    # matched (mostly on one core).
     stitching = ClassicalReconstructor(base, memo)
     stitching.features(photos[:BAND_VIEWS])
     with ThreadPoolExecutor(1) as pool:
