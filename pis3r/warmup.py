@@ -28,8 +28,8 @@ from threadpoolctl import threadpool_limits
 
 from pis3r import gl
 
-# What the classical backend's stages import on first use: pose and exposure fits, depth fill,
-# match refinement.
+# What the classical backend's stages import on first use: pose fits, depth fill, match
+# refinement.
 CLASSICAL_MODULES = ("scipy.optimize", "scipy.sparse.linalg", "scipy.spatial")
 
 _started = threading.Lock()

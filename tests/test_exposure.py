@@ -97,3 +97,55 @@ def test_a_gain_alone_multiplies_each_channel_in_place():
     expected = colours * gain
     assert Exposure(gain).apply_gain(colours) is colours
     np.testing.assert_array_equal(colours, expected)
+
+
+def _noisy_log_ratios(falloff, n, t2_max, shift, seed, gain):
+    """Log colour ratios of a pair seen through a lens ``falloff`` with exposure ratio ``gain``,
+    1 % noise and a fifth of the samples outliers; the two sides' squared tangents."""
+    rng = np.random.default_rng(seed)
+    t2_ref = rng.uniform(0, t2_max - shift, n)
+    t2_view = t2_ref + shift * rng.uniform(0.2, 1.0, n)
+    radiance = rng.uniform(0.1, 0.7, (n, 3))
+    lens = Exposure(np.ones(3), falloff, t2_max)
+    reference = radiance * lens.vignetting(t2_ref)[:, None]
+    view = radiance / gain * lens.vignetting(t2_view)[:, None] * np.exp(rng.normal(0, 0.01, (n, 3)))
+    outliers = rng.uniform(size=n) < 0.2
+    view[outliers] *= rng.uniform(0.5, 1.5, (int(outliers.sum()), 1))
+    return np.log(reference) - np.log(view), t2_ref, t2_view
+
+
+@pytest.mark.parametrize("falloff, seed, shift", [((-0.6, 0.2), 0, 0.1), ((-3.0, 8.0), 0, 0.1), ((0.0, 0.5), 5, 0.15)])
+def test_the_robust_fit_reaches_the_minimum_scipy_finds(falloff, seed, shift):
+    """The fit's soft-L1 cost is scipy's ``least_squares`` optimum (same loss, scale and
+    bounds), to its tolerance: an interior minimum, one on a bound (a falloff that would rise
+    again), and one on both bounds that the fit reaches holding one falloff parameter, then
+    the other (a lens that would brighten off axis: no falloff at all)."""
+    from scipy.optimize import least_squares
+
+    t2_max = 0.4
+    log_ratio, s_ref, s_view = _noisy_log_ratios(falloff, 2000, t2_max, shift, seed, np.array([1.2, 1.0, 0.8]))
+
+    def residuals(p):
+        a, b = exposure._falloff(p, t2_max)
+        log_v = [np.log(np.maximum(1 + a * s + b * s * s, 1e-3)) for s in (s_ref, s_view)]
+        return (p[:3] + (log_v[0] - log_v[1])[:, None] - log_ratio).ravel()
+
+    def cost(p):
+        return float(np.sum(np.sqrt(1 + (residuals(p) / exposure.LOG_RATIO_SCALE) ** 2) - 1))
+
+    start = np.concatenate([np.median(log_ratio, axis=0), [0.0, 0.0]])
+    ours = exposure._fit_gain_and_falloff(log_ratio, s_ref, s_view, t2_max, start)
+    theirs = least_squares(residuals, start, bounds=([-np.inf] * 3 + [0, 0], np.inf), loss="soft_l1",
+                           f_scale=exposure.LOG_RATIO_SCALE).x
+    assert (ours[3:] >= 0).all()
+    assert cost(ours) <= cost(theirs) * (1 + 1e-8)
+    np.testing.assert_allclose(ours, theirs, rtol=1e-3, atol=1e-4)
+
+
+def test_samples_that_do_not_tell_the_falloff_end_the_fit_where_it_started():
+    """Every sample on the axis on both sides: the falloff is undetermined (a singular system),
+    and the fit returns its start instead of raising."""
+    log_ratio = np.log(np.full((500, 3), 1.1))
+    start = np.array([0.05, 0.1, 0.0, 0.0, 0.0])
+    zero = np.zeros(500)
+    np.testing.assert_array_equal(exposure._fit_gain_and_falloff(log_ratio, zero, zero, 0.4, start), start)
