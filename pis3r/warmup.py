@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import importlib
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -58,9 +56,8 @@ def warm_up_in_background(modules: tuple[str, ...] = CLASSICAL_MODULES) -> threa
     return thread
 
 
-@contextmanager
-def single_threaded_blas() -> Iterator[None]:
-    """One OpenBLAS thread in every BLAS library loaded when the block starts (numpy's and
-    OpenCV's; scipy's once a stitch in this process has imported it), restored after it."""
-    with threadpool_limits(1, user_api="blas"):
-        yield
+def single_threaded_blas() -> threadpool_limits:
+    """A context manager: one OpenBLAS thread in every BLAS library loaded when the block starts
+    (numpy's and OpenCV's; scipy's once a stitch in this process has imported it), restored
+    after it."""
+    return threadpool_limits(1, user_api="blas")

@@ -194,17 +194,20 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     # their bands render while the 3-D scenes are built. Every estimate starts from one seed
     # and shares the memo (pis3r.reconstruct.pairs.estimate_pair), so the order changes no scene.
     order = sorted(range(len(allowed)), key=lambda k: allowed[k].model not in WARP_MODELS)
-    scenes: dict[int, Scene | str] = {}
     pending: dict[int, Future] = {}
+    homography: Future | None = None
     with ThreadPoolExecutor(1) as pool:
         for k in order:
             scene = _band_scene(allowed[k], band_photos, base, band_memo)
             # A scene of the homography model renders the pair's homography whichever candidate
             # asked for it: one render stands for the backend's own choice and the forced one.
-            same = [i for i, other in scenes.items() if _is_homography(scene) and _is_homography(other)]
-            scenes[k] = scene
-            pending[k] = pending[same[0]] if same else pool.submit(_render_band, scene, band_photos[0], band.shape,
-                                                                   margin)
+            is_homography = isinstance(scene, Scene) and scene.model == "homography"
+            if is_homography and homography is not None:
+                pending[k] = homography
+                continue
+            pending[k] = pool.submit(_render_band, scene, band_photos[0], band.shape, margin)
+            if is_homography:
+                homography = pending[k]
         renders = [pending[k].result() for k in range(len(allowed))]
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
     scores = tuple(
@@ -217,10 +220,6 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     if not math.isfinite(scores[best].psnr):
         return ModelChoice(None, scores, detector)
     return ModelChoice(scores[best].tested, scores, detector)
-
-
-def _is_homography(scene: Scene | str) -> bool:
-    return isinstance(scene, Scene) and scene.model == "homography"
 
 
 def best_score(scores: tuple[BandScore, ...]) -> int:

@@ -47,6 +47,8 @@ LOG_RATIO_SCALE = 0.05
 # many steps.
 FIT_TOLERANCE = 1e-10
 FIT_MAX_STEPS = 50
+# Which of the fit's five parameters (three log gains, two of the falloff) are bounded below by 0.
+_BOUNDED = np.arange(5) >= 3
 
 
 @dataclass(frozen=True)
@@ -174,8 +176,6 @@ def _fit_gain_and_falloff(log_ratio: np.ndarray, s_ref: np.ndarray, s_view: np.n
     is cut back to the bounds, then halved until the cost falls. Five to eight steps where
     scipy's ``least_squares`` took 7-12 evaluations, each with a numerical Jacobian, and
     tenths of a second per stitch; both reach the same minimum."""
-    index = np.arange(5)
-
     def residuals(p):
         a, b = _falloff(p, t2_max)
         logs, slopes = [], []
@@ -207,7 +207,7 @@ def _fit_gain_and_falloff(log_ratio: np.ndarray, s_ref: np.ndarray, s_view: np.n
         step = _bounded_newton_step(matrix, gradient, p)
         if step is None:
             break
-        shrinking = (index >= 3) & (step < 0.0)
+        shrinking = _BOUNDED & (step < 0.0)
         length = min([1.0, *(p[shrinking] / -step[shrinking])])
         for _ in range(30):
             trial = p + length * step
@@ -237,7 +237,7 @@ def _bounded_newton_step(matrix: np.ndarray, gradient: np.ndarray, p: np.ndarray
             step[free] = -np.linalg.solve(matrix[np.ix_(free, free)], gradient[free])
         except np.linalg.LinAlgError:
             return None
-        held = free & (np.arange(5) >= 3) & (p <= 0.0) & (step < 0.0)
+        held = free & _BOUNDED & (p <= 0.0) & (step < 0.0)
         if not held.any():
             return step
         free &= ~held
