@@ -14,6 +14,7 @@ import numpy as np
 
 from pis3r.camera import intrinsics
 from pis3r.features import Matches
+from pis3r.reconstruct.robust_lsq import robust_least_squares
 
 # Prior focal when neither the user, EXIF nor the two views give one: 1.2 x the longest
 # side (about 45 deg horizontal field of view), COLMAP's prior.
@@ -113,9 +114,6 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
     rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
     ``refine_focal`` both focals scale together (their ratio is kept)."""
-    # scipy only where poses are refined: importing pis3r stays fast (issue 12).
-    from scipy.optimize import least_squares
-
     rays_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ np.linalg.inv(K_a).T
     rays_b = np.hstack([matches.pts_b, np.ones((len(matches), 1))]) @ np.linalg.inv(K_b).T
     # Kabsch start: the rotation that best aligns the unit rays.
@@ -141,9 +139,10 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     def residuals(p):
         return np.nan_to_num(transfer(p), nan=1e6, posinf=1e6, neginf=-1e6).ravel()
 
-    fit = least_squares(residuals, np.zeros(4 if refine_focal else 3), loss="soft_l1", f_scale=scale, max_nfev=100)
-    R, Ka, Kb = unpack(fit.x)
-    return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(fit.x), nan=1e6), axis=1))
+    p, _ = robust_least_squares(residuals, np.zeros(4 if refine_focal else 3), loss="soft_l1", scale=scale,
+                                max_evaluations=100)
+    R, Ka, Kb = unpack(p)
+    return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(p), nan=1e6), axis=1))
 
 
 def plausibility_warning(focal: float, width: int, height: int) -> str | None:
