@@ -6,6 +6,7 @@ from skimage import data
 
 import pis3r
 from pis3r.errors import InputError, NotEnoughOverlapError
+from pis3r.features import match
 from pis3r.io import Photo
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.classical import ClassicalReconstructor
@@ -176,6 +177,22 @@ def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_thr
     # Shifts of the picture: the rotations about the vertical axis grow with the shift.
     turn = [view.camera.R[0, 2] for view in scene.views]
     assert turn[1] < 0 and turn[2] / turn[1] == pytest.approx(270 / 150, rel=0.1)
+
+
+def test_the_anchors_of_a_chain_are_ranked_on_the_strongest_features_only(monkeypatch):
+    """The match counts that rank a view's anchors compare CHAIN_COUNT_FEATURES features of each
+    photo, not all of them; the view is then placed by its anchor's full matches."""
+    from pis3r.reconstruct import classical
+
+    monkeypatch.setattr(classical, "CHAIN_COUNT_FEATURES", 60)
+    counted = []
+    monkeypatch.setattr(classical, "match", lambda a, b: counted.append((len(a.points), len(b.points)))
+                        or match(a, b))
+    photos = _crops((0, 150, 270))
+    scene = ClassicalReconstructor(ReconstructOptions()).reconstruct(photos)
+    assert scene.indices == (0, 1, 2) and counted == [(60, 60)]
+    turn = [view.camera.R[0, 2] for view in scene.views]
+    assert turn[2] / turn[1] == pytest.approx(270 / 150, rel=0.1)
 
 
 def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift_too():

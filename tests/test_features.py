@@ -13,8 +13,9 @@ from pis3r.eval.registration import (
     judge_features,
     match_canvases,
 )
-from pis3r.features import Features, Matches, detect, detect_affine, match, refine_matches, to_gray_u8
+from pis3r.features import Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import CONVERT_ROWS, to_uint8
+from pis3r.subpixel import refine_matches
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +38,25 @@ def test_default_detection_is_rootsift_at_low_contrast(pair):
     assert len(points) > 100 and features.root_sift
     assert np.array_equal(features.points, points) and np.array_equal(features.descriptors, root)
     np.testing.assert_allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-5)
+
+
+def test_the_strongest_features_are_those_sift_keeps_when_asked_for_fewer(pair):
+    image = pair[0]
+    features = detect(image)
+    keypoints, _ = cv2.SIFT_create(nfeatures=8000, contrastThreshold=0.02).detectAndCompute(to_gray_u8(image), None)
+    np.testing.assert_array_equal(features.strength, np.float32([kp.response for kp in keypoints]))
+    strongest = features.strongest(100)
+    assert len(strongest.points) == 100 and strongest.strength.min() >= np.sort(features.strength)[-100]
+    # In their order in the whole set, points and descriptors together (a walk along it).
+    row = 0
+    for point, descriptor in zip(strongest.points, strongest.descriptors):
+        while not (np.array_equal(features.points[row], point)
+                   and np.array_equal(features.descriptors[row], descriptor)):
+            row += 1
+        row += 1
+    assert features.strongest(len(features.points)) is features
+    unknown = Features(features.points, features.descriptors)
+    assert unknown.strongest(100) is unknown
 
 
 def test_detection_on_a_smaller_copy_returns_full_resolution_pixels(pair):

@@ -39,9 +39,12 @@ from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View
 
 WORK_MAX_SIDE = 640
-# A view that does not overlap the reference tries this many registered views (those it
-# shares the most matches with) before it is dropped.
+# A view that does not overlap the reference tries this many registered views (those it shares
+# the most mutual matches with among both photos' CHAIN_COUNT_FEATURES strongest SIFT features:
+# 0.03 s where all 8000 x 8000 take 0.4 s; the fountain's far views rank their three best
+# anchors as all features do, and the anchor's pair is then matched in full) before it is dropped.
 CHAIN_ANCHORS = 3
+CHAIN_COUNT_FEATURES = 2000
 
 
 def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
@@ -171,12 +174,11 @@ class ClassicalReconstructor:
             attached = False
             for j in sorted(failures):
                 # Match counts are memoised: a later round or call only adds newly registered photos.
-                # Each count is one descriptor product and its nearest neighbours: two at a time.
+                # Each count's descriptor product is split over both cores (features._similarity).
                 count_keys = {i: ("shared", id(photos[i]), id(photos[j])) for i in registered if i != 0}
-                missing = [i for i, key in count_keys.items() if key not in self.memo]
-                with ThreadPoolExecutor(2) as pool:
-                    for i, found in zip(missing, pool.map(lambda i: match(features[i].sift, features[j].sift), missing)):
-                        self.memo[count_keys[i]] = len(found)
+                strongest = features[j].sift.strongest(CHAIN_COUNT_FEATURES)
+                for i in [i for i, key in count_keys.items() if key not in self.memo]:
+                    self.memo[count_keys[i]] = len(match(features[i].sift.strongest(CHAIN_COUNT_FEATURES), strongest))
                 anchors = sorted(count_keys, key=lambda i: -self.memo[count_keys[i]])
                 for i in anchors[:CHAIN_ANCHORS]:
                     anchor = registered[i]

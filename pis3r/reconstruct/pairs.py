@@ -5,7 +5,7 @@ it, the focal and the relative pose exported for it.
    ``FEW_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
    inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches). ASIFT
    detects on a copy at most 640 px long: its inliers are moved to where their patches
-   correlate on the photos themselves (:func:`pis3r.features.refine_matches`).
+   correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
 3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
@@ -33,9 +33,9 @@ import numpy as np
 
 from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
-from pis3r.features import (AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, refine_matches,
-                            to_gray_u8)
+from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
+from pis3r.subpixel import refine_matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import (
