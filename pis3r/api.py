@@ -149,7 +149,9 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
             scores = ", ".join(f"{score.candidate.label} {score.psnr:.2f} dB" for score in choice.scores)
             timer.say(f"model on the held-back band: {scores} -> {choice.chosen.label}")
     with timer.stage("reconstruct"):
-        scene = create_backend(backend, backend_options, memo).reconstruct(ordered)
+        # Reconstructed during the band test already when the backend's own 3-D explanation won.
+        scene = (choice.scene if choice.scene is not None
+                 else create_backend(backend, backend_options, memo).reconstruct(ordered))
     scene = scene.in_input_order(order)
     for dropped in scene.dropped:
         log.add(f"dropped image {dropped.index} ({dropped.name}): {dropped.reason}")

@@ -133,9 +133,15 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
     detected, band_detectors = [], []
     original_detect, original_reconstruct = pairs.detect, classical.ClassicalReconstructor.reconstruct
     monkeypatch.setattr(pairs, "detect", lambda image: detected.append(image.shape[:2]) or original_detect(image))
-    monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", lambda self, photos: band_detectors.append(
-        self.options.detector) or original_reconstruct(self, photos))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+
+    def reconstruct(self, found):
+        # The band's reconstructions (of its copies; the whole photos are reconstructed beside them).
+        if found[0] is not photos[0]:
+            band_detectors.append(self.options.detector)
+        return original_reconstruct(self, found)
+
+    monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", reconstruct)
     whole = classical.ClassicalReconstructor(ReconstructOptions()).detector(*photos)
     detected.clear()
     memo = {}
@@ -145,6 +151,45 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
     band_count = len(detected) - 2
     classical.ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert len(detected) == band_count + 2 and band_count == 2
+
+
+def test_the_backends_3d_explanation_is_reconstructed_during_the_band_test_and_used_when_it_wins(small_pair,
+                                                                                                 monkeypatch):
+    """With the default model the whole photos are reconstructed in the backend's 3-D form
+    while the band is tested: when that candidate wins, the stitch takes that scene, the one
+    it would have reconstructed after the test; when a warp wins, the stitch reconstructs."""
+    from pis3r.reconstruct.classical import ClassicalReconstructor
+    from pis3r.stitch import choose
+    from tests.analytic import planes_scene, render, two_view_cameras
+
+    pair = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    warp = choose_model(pair, "classical", ReconstructOptions(), model="auto", memo={})
+    assert warp.chosen == Candidate("homography") and warp.scene is None
+    # Two planes seen from two places: the backend's own explanation is 3-D on the band; it wins.
+    images = [render(planes_scene(), camera)[0] for camera in two_view_cameras()]
+    photos = [Photo(image, name) for image, name in zip(images, "ab")]
+    monkeypatch.setattr(choose, "best_score", lambda scores: 0)
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo={})
+    assert choice.chosen == Candidate("3d") and choice.scene is not None
+    memo = {}
+    ClassicalReconstructor(ReconstructOptions(), memo).detector(*photos)
+    after = ClassicalReconstructor(Candidate("3d").backend_options(ReconstructOptions()), memo).reconstruct(photos)
+    for view, expected in zip(choice.scene.views, after.views):
+        np.testing.assert_array_equal(view.camera.R, expected.camera.R)
+        np.testing.assert_array_equal(view.camera.K, expected.camera.K)
+        np.testing.assert_array_equal(view.depth, expected.depth)
+    # The stitch reconstructs the whole photos once.
+    whole = []
+    original = ClassicalReconstructor.reconstruct
+
+    def reconstruct(self, found):
+        if found[0].width == images[0].shape[1]:
+            whole.append(self.options.model)
+        return original(self, found)
+
+    monkeypatch.setattr(ClassicalReconstructor, "reconstruct", reconstruct)
+    result = pis3r.stitch(images, backend="classical")
+    assert whole == ["3d"] and result.report["model_choice"]["chosen"]["model"] == "3d"
 
 
 def test_forcing_a_model_skips_the_band_test(small_pair):

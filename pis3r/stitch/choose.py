@@ -123,12 +123,15 @@ class BandScore:
 @dataclass(frozen=True)
 class ModelChoice:
     """The candidate that makes the stitch, every band score (empty when nothing was to
-    choose: a forced model, or a backend without a choice) and the features the band's
-    copies were matched with (``detector``; empty without a band test)."""
+    choose: a forced model, or a backend without a choice), the features the band's copies
+    were matched with (``detector``; empty without a band test) and, when the chosen
+    candidate was reconstructed from the whole photos during the band test, its ``scene``
+    (``None``: the stitch reconstructs it)."""
 
     chosen: Candidate | None
     scores: tuple[BandScore, ...] = ()
     detector: str = ""
+    scene: Scene | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -165,7 +168,12 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     ``photos`` that will make the stitch (:class:`ClassicalReconstructor`): the features
     and matches of the first two photos, which say which detector the band uses, are
     computed into it once, and the other photos' features detected into it while the band
-    test runs."""
+    test runs. With ``model`` ``auto`` and a ``memo``, the backend's own explanation in its
+    3-D form (what most pairs stitch with) is reconstructed from the whole photos into it on
+    a thread meanwhile: ``scene`` when that candidate is chosen. The band test runs mostly on
+    one core, and the memo then holds what it would hold had the stitch reconstructed it
+    after the test (the thread has ended when this returns; it seeds OpenCV's random state
+    itself, on top of the first two photos' matches as the stitch would find them)."""
     allowed = candidates(model, depth_fill) if backend == "classical" else []
     if len(allowed) <= 1:
         return ModelChoice(allowed[0] if allowed else None)
@@ -173,9 +181,9 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     # costs the same for two photos or eleven.
     small = [_working_size(photo) for photo in photos[:BAND_VIEWS]]
     inner, margin, band = _hold_back_band(small[0])
-    band_photos, band_memo = [inner, *small[1:]], {}
     # The photos are detected on both cores; then the band's copies while the photos are
     # matched (mostly on one core).
+    band_photos, band_memo = [inner, *small[1:]], {}
     stitching = ClassicalReconstructor(base, memo)
     stitching.features(photos[:BAND_VIEWS])
     with ThreadPoolExecutor(1) as pool:
@@ -186,7 +194,33 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
         # The other photos' features, which the stitch reads next, are found meanwhile on a
         # core the band test leaves idle part of the time.
         stitching.detect_in_background(photos[BAND_VIEWS:])
-    base = replace(base, detector=detector)
+    guess = Candidate("3d", allowed[0].depth_fill, allowed[0].focal_rule) if model == "auto" else None
+    with ThreadPoolExecutor(1) as speculation:
+        whole = speculation.submit(_whole_scene, guess, photos, base, memo) if guess and memo is not None else None
+        scores = _band_scores(allowed, band_photos, band_memo, small[0], margin, band,
+                              replace(base, detector=detector))
+        scene = whole.result() if whole is not None else None
+    best = best_score(scores)
+    if not math.isfinite(scores[best].psnr):
+        return ModelChoice(None, scores, detector)
+    chosen = scores[best].tested
+    return ModelChoice(chosen, scores, detector, scene if chosen == guess else None)
+
+
+def _whole_scene(candidate: Candidate, photos: list[Photo], base: ReconstructOptions, memo: dict) -> Scene | None:
+    """The scene ``candidate`` makes of the whole ``photos`` with the stitch's ``memo``, or
+    ``None`` where it cannot (the stitch then says why, if it is chosen)."""
+    try:
+        return ClassicalReconstructor(candidate.backend_options(base), memo).reconstruct(photos)
+    except Pis3rError:
+        return None
+
+
+def _band_scores(allowed: list[Candidate], band_photos: list[Photo], band_memo: dict, ref: Photo,
+                 margin: tuple[int, int], band: np.ndarray, base: ReconstructOptions) -> tuple[BandScore, ...]:
+    """Every candidate's score on the held-back ``band`` ``(h, w)`` of ``ref`` (the reference at
+    the working size), from ``band_photos``: its inner part (at ``margin``) and the other
+    photos at the working size, whose features ``band_memo`` holds."""
     # The candidates are reconstructed here one after the other, as their shared memo and
     # OpenCV's random state (both per thread) expect, while another thread renders the bands
     # of those before: rendering is mostly Mesa's and OpenCV's threads, reconstructing mostly
@@ -210,16 +244,12 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
                 homography = pending[k]
         renders = [pending[k].result() for k in range(len(allowed))]
     reached = band & np.any([covered for _, covered, _, _ in renders], axis=0)
-    scores = tuple(
+    return tuple(
         BandScore(candidate, -math.inf, 0.0, error) if error else
-        BandScore(candidate, band_score(predicted, covered, small[0].pixels, reached), float(covered[band].mean()),
+        BandScore(candidate, band_score(predicted, covered, ref.pixels, reached), float(covered[band].mean()),
                   scene_model=scene_model)
         for candidate, (predicted, covered, error, scene_model) in zip(allowed, renders)
     )
-    best = best_score(scores)
-    if not math.isfinite(scores[best].psnr):
-        return ModelChoice(None, scores, detector)
-    return ModelChoice(scores[best].tested, scores, detector)
 
 
 def best_score(scores: tuple[BandScore, ...]) -> int:
