@@ -35,7 +35,6 @@ from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
-from pis3r.subpixel import refine_matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import (
@@ -46,6 +45,7 @@ from pis3r.reconstruct.focal import (
     rotation_focal,
 )
 from pis3r.scene import Deferred
+from pis3r.subpixel import refine_matches
 
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
