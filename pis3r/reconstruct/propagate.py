@@ -29,6 +29,7 @@ behind the camera.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import cv2
@@ -44,6 +45,9 @@ SOLVE_MAX_SIDE = 256
 # SuperLU's supernode relaxation and panel width for the grid solves (screened_solve).
 SUPERLU_RELAX = 6
 SUPERLU_PANEL = 6
+# The grid solves eliminate pixels in nested-dissection order (grid_dissection_order): blocks
+# of at most this many pixels are not cut further.
+DISSECTION_LEAF = 16
 # The final solve of the plane fills has a prior at every pixel: conjugate gradients (Jacobi
 # preconditioned, started from the prior) reach this relative residual in 120-170 iterations
 # on the 256 px grid, a third of a factorisation's time; past CG_MAX_ITERATIONS the system
@@ -94,27 +98,85 @@ def _screened_system(laplacian: sp.csr_matrix, weight: np.ndarray, smoothness: f
     return (sp.diags(weight + 1e-9) + smoothness * laplacian).tocsr().astype(np.float64)
 
 
-def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float) -> np.ndarray:
-    """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``."""
+@lru_cache(maxsize=8)
+def grid_dissection_order(height: int, width: int) -> np.ndarray:
+    """``(height * width,)``, read-only: the pixels of a row-major ``height x width`` grid in
+    nested-dissection order (George 1973): a block is cut in two by its middle column or row
+    (across its longer side), each half ordered the same way, the cut last; blocks of at most
+    ``DISSECTION_LEAF`` pixels row by row. Eliminated in this order, a 4-neighbour grid
+    system's factor stays small (its dense parts are the cuts), which SuperLU's minimum-degree
+    ordering only approaches, at the cost of computing it for every system."""
+    order: list[np.ndarray] = []
+    # Depth first, both halves before their cut: blocks and the cuts waiting for them.
+    stack: list = [(0, height, 0, width)]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, np.ndarray):
+            order.append(item)
+            continue
+        top, bottom, left, right = item
+        rows, cols = bottom - top, right - left
+        if rows * cols <= DISSECTION_LEAF or min(rows, cols) < 3:
+            order.append((np.arange(top, bottom)[:, None] * width + np.arange(left, right)).ravel())
+            continue
+        if cols >= rows:
+            middle = (left + right) // 2
+            halves = [(top, bottom, left, middle), (top, bottom, middle + 1, right)]
+            cut = np.arange(top, bottom) * width + middle
+        else:
+            middle = (top + bottom) // 2
+            halves = [(top, middle, left, right), (middle + 1, bottom, left, right)]
+            cut = middle * width + np.arange(left, right)
+        stack += [cut, halves[1], halves[0]]
+    result = np.concatenate(order)
+    result.flags.writeable = False
+    return result
+
+
+def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float,
+                   grid: tuple[int, int] | None = None) -> np.ndarray:
+    """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``. ``grid``:
+    ``(h, w)`` when the ``N = h * w`` unknowns are a row-major grid's pixels (as
+    :func:`_grid_laplacian`'s): they are then eliminated in :func:`grid_dissection_order`."""
     from scipy.sparse.linalg import splu
 
-    A = _screened_system(laplacian, weight, smoothness).tocsc()
-    # The system is symmetric positive definite: a minimum-degree ordering of A + A^T (faster
-    # than COLAMD) and no pivoting, which keeps that ordering. Narrow panels suit a grid's
+    A = _screened_system(laplacian, weight, smoothness)
+    rhs = np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64)
+    order = None if grid is None else grid_dissection_order(*grid)
+    if order is not None:
+        A, rhs = _permuted(A, order), rhs[order]
+    # The system is symmetric positive definite: no pivoting, which keeps the ordering (without
+    # a grid, a minimum-degree one of A + A^T, faster than COLAMD). Narrow panels suit a grid's
     # small supernodes: a third less time than SuperLU's defaults for the same factors.
-    factor = splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, relax=SUPERLU_RELAX,
-                  panel_size=SUPERLU_PANEL, options={"SymmetricMode": True})
-    return factor.solve(np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64))
+    factor = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A" if order is None else "NATURAL", diag_pivot_thresh=0.0,
+                  relax=SUPERLU_RELAX, panel_size=SUPERLU_PANEL, options={"SymmetricMode": True})
+    solved = factor.solve(rhs)
+    if order is None:
+        return solved
+    unpermuted = np.empty_like(solved)
+    unpermuted[order] = solved
+    return unpermuted
+
+
+def _permuted(A: sp.csr_matrix, order: np.ndarray) -> sp.csr_matrix:
+    """``A[order][:, order]`` ``(N, N)``: unknown ``order[i]`` becomes unknown ``i``."""
+    import scipy.sparse as sp
+
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    entries = A.tocoo()
+    return sp.csr_matrix((entries.data, (rank[entries.row], rank[entries.col])), shape=A.shape)
 
 
 def anchored_solve(laplacian: sp.csr_matrix, target: np.ndarray, weight: np.ndarray, smoothness: float,
-                   start: np.ndarray) -> np.ndarray:
+                   start: np.ndarray, grid: tuple[int, int] | None = None) -> np.ndarray:
     """:func:`screened_solve` for one right-hand side ``target (N,)`` whose ``weight (N,)`` is
     positive at every pixel, by conjugate gradients from ``start (N,)``. Returns ``(N,)``.
 
     The weight bounds the system's eigenvalues from below, so CG converges in a few hundred
     matrix products whatever the grid; a system with unanchored pixels is better factorised
-    (:func:`screened_solve`), and that is what this falls back to if CG does not converge."""
+    (:func:`screened_solve`, on ``grid`` as there), and that is what this falls back to if CG
+    does not converge."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import cg
 
@@ -123,7 +185,7 @@ def anchored_solve(laplacian: sp.csr_matrix, target: np.ndarray, weight: np.ndar
     solved, info = cg(A, np.asarray(weight * target, np.float64), x0=np.asarray(start, np.float64),
                       rtol=CG_TOLERANCE, atol=0.0, M=jacobi, maxiter=CG_MAX_ITERATIONS)
     if info != 0:
-        return screened_solve(laplacian, target[:, None], weight, smoothness)[:, 0]
+        return screened_solve(laplacian, target[:, None], weight, smoothness, grid)[:, 0]
     return solved
 
 
@@ -195,10 +257,11 @@ def propagate_inverse_depth(
     labels = [(owners.ravel() == k) * weight for k in range(len(planes) + 1)] if len(planes) else []
     with ThreadPoolExecutor(1) as worker:
         # SuperLU releases the GIL: the plane fields' factorisation overlaps this one.
-        first = worker.submit(screened_solve, L, np.stack([small.ravel(), weight, *labels], -1), weight, smoothness)
+        first = worker.submit(screened_solve, L, np.stack([small.ravel(), weight, *labels], -1), weight, smoothness,
+                              (sh, sw))
         if method in ("planar", "planes"):
             params, plane_w = _local_planes(small, np.where(seeds, small_conf, 0.0), PLANE_WINDOW)
-            fields = screened_solve(L, params.reshape(-1, 3), plane_w.ravel(), smoothness)
+            fields = screened_solve(L, params.reshape(-1, 3), plane_w.ravel(), smoothness, (sh, sw))
         solved = first.result()
     dense, reach = solved[:, 0], solved[:, 1]
     v, u = np.mgrid[0:sh, 0:sw].astype(np.float64)
@@ -214,7 +277,7 @@ def propagate_inverse_depth(
         # Measurements where they exist, the extrapolated planes elsewhere.
         prior = 0.02
         blended = (weight * small.ravel() + prior * planar) / (weight + prior)
-        dense = anchored_solve(L, blended, weight + prior, smoothness, blended)
+        dense = anchored_solve(L, blended, weight + prior, smoothness, blended, (sh, sw))
     dense = np.maximum(dense.reshape(sh, sw), far)
     reach = np.clip(reach.reshape(sh, sw), 0, 1)
     dense = cv2.resize(dense.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
