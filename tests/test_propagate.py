@@ -74,17 +74,19 @@ def test_no_dominant_plane_falls_back_to_the_planar_fill():
                                   propagate_inverse_depth(measured, conf, guide, method="planar")[0])
 
 
-@pytest.mark.parametrize("grid", [None, (40, 50)])
-def test_screened_solve_solves_the_grid_system(grid):
-    """The factorisation's settings (no pivoting, narrow panels; SuperLU's ordering or the
-    grid's dissection) still solve the screened system exactly, with seeds on a tenth of a
-    colour-edged grid and several right-hand sides."""
+@pytest.mark.parametrize("shape", [(40, 50), (7, 9), (1, 12)])
+def test_screened_solve_solves_the_grid_system(shape):
+    """The red-black reduction and the factorisation's settings (dissection order, no
+    pivoting, narrow panels) still solve the screened system exactly, with seeds on a tenth
+    of a colour-edged grid and several right-hand sides, on even and odd grids."""
     rng = np.random.default_rng(3)
-    guide = rng.random((40, 50, 3)).astype(np.float32)
+    size = shape[0] * shape[1]
+    guide = rng.random((*shape, 3)).astype(np.float32)
     laplacian = _grid_laplacian(guide, 0.08)
-    weight = np.where(rng.random(40 * 50) < 0.1, rng.random(40 * 50), 0.0)
-    seeds = rng.random((40 * 50, 3))
-    solved = screened_solve(laplacian, seeds, weight, 1.0, grid)
+    weight = np.where(rng.random(size) < 0.1, rng.random(size), 0.0)
+    weight[0] = 0.5  # one seed at least
+    seeds = rng.random((size, 3))
+    solved = screened_solve(laplacian, seeds, weight, 1.0, shape)
     system = np.diag(weight + 1e-9) + laplacian.toarray()
     expected = np.linalg.solve(system, weight[:, None] * seeds)
     assert np.allclose(solved, expected, rtol=1e-6, atol=1e-9)
@@ -126,7 +128,7 @@ def test_anchored_solve_matches_the_factorisation_and_falls_back_to_it(monkeypat
     laplacian = _grid_laplacian(guide, 0.08)
     weight = np.where(rng.random(60 * 80) < 0.1, rng.random(60 * 80), 0.0) + 0.02
     target = rng.random(60 * 80)
-    expected = screened_solve(laplacian, target[:, None], weight, 1.0)[:, 0]
-    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target), expected, rtol=1e-7)
+    expected = screened_solve(laplacian, target[:, None], weight, 1.0, (60, 80))[:, 0]
+    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target, (60, 80)), expected, rtol=1e-7)
     monkeypatch.setattr(propagate, "CG_MAX_ITERATIONS", 1)
-    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target), expected, rtol=1e-12)
+    np.testing.assert_allclose(anchored_solve(laplacian, target, weight, 1.0, target, (60, 80)), expected, rtol=1e-12)

@@ -47,7 +47,7 @@ SUPERLU_RELAX = 6
 SUPERLU_PANEL = 6
 # The grid solves eliminate pixels in nested-dissection order (grid_dissection_order): blocks
 # of at most this many pixels are not cut further.
-DISSECTION_LEAF = 16
+DISSECTION_LEAF = 32
 # The final solve of the plane fills has a prior at every pixel: conjugate gradients (Jacobi
 # preconditioned, started from the prior) reach this relative residual in 120-170 iterations
 # on the 256 px grid, a third of a factorisation's time; past CG_MAX_ITERATIONS the system
@@ -101,11 +101,13 @@ def _screened_system(laplacian: sp.csr_matrix, weight: np.ndarray, smoothness: f
 @lru_cache(maxsize=8)
 def grid_dissection_order(height: int, width: int) -> np.ndarray:
     """``(height * width,)``, read-only: the pixels of a row-major ``height x width`` grid in
-    nested-dissection order (George 1973): a block is cut in two by its middle column or row
-    (across its longer side), each half ordered the same way, the cut last; blocks of at most
-    ``DISSECTION_LEAF`` pixels row by row. Eliminated in this order, a 4-neighbour grid
-    system's factor stays small (its dense parts are the cuts), which SuperLU's minimum-degree
-    ordering only approaches, at the cost of computing it for every system."""
+    nested-dissection order (George 1973): a block is cut in two by its middle two columns or
+    rows (across its longer side), each half ordered the same way, the cut last; blocks of at
+    most ``DISSECTION_LEAF`` pixels row by row. Eliminated in this order, a grid system's
+    factor stays small (its dense parts are the cuts), which SuperLU's minimum-degree ordering
+    only approaches, at the cost of computing it for every system. The cuts are two pixels
+    wide so that they also cut the red-black reduced system (:func:`screened_solve`), whose
+    pixels are coupled two apart."""
     order: list[np.ndarray] = []
     # Depth first, both halves before their cut: blocks and the cuts waiting for them.
     stack: list = [(0, height, 0, width)]
@@ -116,60 +118,64 @@ def grid_dissection_order(height: int, width: int) -> np.ndarray:
             continue
         top, bottom, left, right = item
         rows, cols = bottom - top, right - left
-        if rows * cols <= DISSECTION_LEAF or min(rows, cols) < 3:
+        if rows * cols <= DISSECTION_LEAF or min(rows, cols) < 5:
             order.append((np.arange(top, bottom)[:, None] * width + np.arange(left, right)).ravel())
             continue
         if cols >= rows:
-            middle = (left + right) // 2
-            halves = [(top, bottom, left, middle), (top, bottom, middle + 1, right)]
-            cut = np.arange(top, bottom) * width + middle
+            middle = (left + right) // 2 - 1
+            halves = [(top, bottom, left, middle), (top, bottom, middle + 2, right)]
+            cut = (np.arange(top, bottom)[:, None] * width + np.arange(middle, middle + 2)).ravel()
         else:
-            middle = (top + bottom) // 2
-            halves = [(top, middle, left, right), (middle + 1, bottom, left, right)]
-            cut = middle * width + np.arange(left, right)
+            middle = (top + bottom) // 2 - 1
+            halves = [(top, middle, left, right), (middle + 2, bottom, left, right)]
+            cut = (np.arange(middle, middle + 2)[:, None] * width + np.arange(left, right)).ravel()
         stack += [cut, halves[1], halves[0]]
     result = np.concatenate(order)
     result.flags.writeable = False
     return result
 
 
+@lru_cache(maxsize=8)
+def _red_black(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """The red pixels (row + column even) of a row-major ``height x width`` grid and the black
+    ones in :func:`grid_dissection_order`, ``(R,)`` and ``(B,)``."""
+    order = grid_dissection_order(height, width)
+    red = (order // width + order % width) % 2 == 0
+    return np.sort(order[red]), order[~red]
+
+
 def screened_solve(laplacian: sp.csr_matrix, seeds: np.ndarray, weight: np.ndarray, smoothness: float,
-                   grid: tuple[int, int] | None = None) -> np.ndarray:
-    """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``. ``grid``:
-    ``(h, w)`` when the ``N = h * w`` unknowns are a row-major grid's pixels (as
-    :func:`_grid_laplacian`'s): they are then eliminated in :func:`grid_dissection_order`."""
+                   grid: tuple[int, int]) -> np.ndarray:
+    """Solve ``(diag(weight) + smoothness * L) x = weight * seeds`` for ``seeds (N, k)``, where
+    ``L`` couples each of the ``N = h * w`` pixels of the row-major ``grid`` ``(h, w)`` to its
+    four neighbours only (:func:`_grid_laplacian`).
+
+    A red pixel (row + column even) is then coupled to black ones only: its equation gives it
+    from them, and substituted into theirs, leaves a system of the black pixels alone (exact;
+    each now coupled to the eight black pixels around it). That half-size system is
+    factorised in :func:`grid_dissection_order`, the red pixels follow."""
+    import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
+    red, black = _red_black(*grid)
     A = _screened_system(laplacian, weight, smoothness)
-    rhs = np.ascontiguousarray(weight[:, None] * seeds, dtype=np.float64)
-    order = None if grid is None else grid_dissection_order(*grid)
-    if order is not None:
-        A, rhs = _permuted(A, order), rhs[order]
-    # The system is symmetric positive definite: no pivoting, which keeps the ordering (without
-    # a grid, a minimum-degree one of A + A^T, faster than COLAMD). Narrow panels suit a grid's
-    # small supernodes: a third less time than SuperLU's defaults for the same factors.
-    factor = splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A" if order is None else "NATURAL", diag_pivot_thresh=0.0,
-                  relax=SUPERLU_RELAX, panel_size=SUPERLU_PANEL, options={"SymmetricMode": True})
-    solved = factor.solve(rhs)
-    if order is None:
-        return solved
-    unpermuted = np.empty_like(solved)
-    unpermuted[order] = solved
-    return unpermuted
-
-
-def _permuted(A: sp.csr_matrix, order: np.ndarray) -> sp.csr_matrix:
-    """``A[order][:, order]`` ``(N, N)``: unknown ``order[i]`` becomes unknown ``i``."""
-    import scipy.sparse as sp
-
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    entries = A.tocoo()
-    return sp.csr_matrix((entries.data, (rank[entries.row], rank[entries.col])), shape=A.shape)
+    rhs = weight[:, None] * seeds
+    inverse_red = 1.0 / A.diagonal()[red]
+    black_red = A[black][:, red]
+    reduced = (A[black][:, black] - black_red @ sp.diags(inverse_red) @ black_red.T).tocsc()
+    reduced_rhs = rhs[black] - black_red @ (inverse_red[:, None] * rhs[red])
+    # Symmetric positive definite: no pivoting, which keeps the order. Narrow panels suit a
+    # grid's small supernodes: a third less time than SuperLU's defaults for the same factors.
+    factor = splu(reduced, permc_spec="NATURAL", diag_pivot_thresh=0.0, relax=SUPERLU_RELAX,
+                  panel_size=SUPERLU_PANEL, options={"SymmetricMode": True})
+    solved = np.empty(rhs.shape, np.float64)
+    solved[black] = factor.solve(np.ascontiguousarray(reduced_rhs, dtype=np.float64))
+    solved[red] = inverse_red[:, None] * (rhs[red] - black_red.T @ solved[black])
+    return solved
 
 
 def anchored_solve(laplacian: sp.csr_matrix, target: np.ndarray, weight: np.ndarray, smoothness: float,
-                   start: np.ndarray, grid: tuple[int, int] | None = None) -> np.ndarray:
+                   start: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
     """:func:`screened_solve` for one right-hand side ``target (N,)`` whose ``weight (N,)`` is
     positive at every pixel, by conjugate gradients from ``start (N,)``. Returns ``(N,)``.
 
