@@ -372,26 +372,36 @@ def test_scene_mesh_exports_as_a_strictly_valid_ply():
         encode_mesh_ply(vertices, faces + len(vertices), colors)
 
 
-def test_colours_with_a_falloff_are_sampled_block_by_block_as_in_one_pass():
+def test_colours_are_sampled_block_by_block_as_in_one_pass():
+    """Two views, one with a falloff and one with a gain alone, sampled in blocks of rows on two
+    threads: every pixel as one remap of each view's box, its exposure and a masked copy give."""
     from pis3r.io import CONVERT_ROWS
 
     h, w = 2 * CONVERT_ROWS + 37, 90
     K = intrinsics(120.0, w, h)
-    view = View(_textured(h, w, seed=5), Camera.identity(K, w, h), np.ones((h, w), np.float32),
-                np.ones((h, w), np.float32))
+    views = [View(_textured(h, w, seed=seed), Camera.identity(K, w, h), np.ones((h, w), np.float32),
+                  np.ones((h, w), np.float32)) for seed in (5, 7)]
     rng = np.random.default_rng(6)
-    layer = np.where(rng.random((h + 20, w + 10)) < 0.9, 0, -1).astype(np.int16)
+    layer = rng.choice(np.array([-1, 0, 1], np.int16), size=(h + 20, w + 10), p=[0.1, 0.6, 0.3])
+    # The second view's box starts lower: the two views' blocks of rows start on different rows.
+    top = layer[: CONVERT_ROWS // 2]
+    top[top == 1] = 0
     uv = (rng.random((h + 20, w + 10, 2)) * [w - 1, h - 1]).astype(np.float32)
     canvas_K = intrinsics(120.0, w + 10, h + 20)
-    lens = exposure.Exposure(np.array([0.9, 1.1, 1.0], np.float32), (-0.4, 0.1), 0.5)
-    sampled = render._sample_colours(Scene([view, view]), raster.Raster(layer, np.ones(layer.shape, np.float32), uv),
-                                     [1], [lens], canvas_K)
-    expected = cv2.remap(view.image, uv, None, render.COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
-    rows, cols = np.flatnonzero((layer == 0).any(axis=1)), np.flatnonzero((layer == 0).any(axis=0))
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-    expected = expected[box].copy()
-    lens.apply(expected, exposure.grid_squared_tangents(canvas_K, *box), squared_tangents(uv[box], K))
+    lenses = [exposure.Exposure(np.array([0.9, 1.1, 1.0], np.float32), (-0.4, 0.1), 0.5),
+              exposure.Exposure(np.array([1.2, 0.8, 1.05], np.float32))]
+    rasterised = raster.Raster(layer, np.ones(layer.shape, np.float32), uv)
+    sampled = render._sample_colours(Scene([views[0], *views]), rasterised, [1, 2], lenses, canvas_K)
     whole = np.zeros_like(sampled)
-    whole[box] = np.clip(expected, 0, 1)
-    whole[layer < 0] = 0
+    for k, (view, lens) in enumerate(zip(views, lenses)):
+        expected = cv2.remap(view.image, uv, None, render.COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
+        rows, cols = np.flatnonzero((layer == k).any(axis=1)), np.flatnonzero((layer == k).any(axis=0))
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        expected = expected[box].copy()
+        if k == 0:
+            lens.apply(expected, exposure.grid_squared_tangents(canvas_K, *box), squared_tangents(uv[box], K))
+        else:
+            lens.apply_gain(expected)
+        mine = layer[box] == k
+        whole[box][mine] = np.clip(expected, 0, 1)[mine]
     np.testing.assert_array_equal(sampled, whole)

@@ -287,32 +287,35 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
     and brought to the reference camera by ``exposures[k]`` (``canvas_K``: the canvas's
     intrinsics); 0 where no layer."""
     image = np.zeros(raster.layer.shape + (3,), np.float32)
-    for k, index in enumerate(indices):
-        mine = raster.layer == k
-        rows, cols = np.flatnonzero(mine.any(axis=1)), np.flatnonzero(mine.any(axis=0))
-        if not rows.size:
-            continue
-        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        uv = raster.uv[box]
+
+    def sample(k: int, rows: slice, cols: slice) -> None:
+        # One block of rows of one view's box: its colours, their exposure and the copy into the
+        # canvas are the block's own, so blocks run on both cores and their temporaries stay small.
+        view = scene.views[indices[k]]
+        uv = raster.uv[rows, cols]
         # One two-channel map, read in place: split into x and y, each would be copied first.
-        sampled = cv2.remap(scene.views[index].image, uv, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
+        sampled = cv2.remap(view.image, uv, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
-            # A block of rows at a time: the squared tangents and falloffs stay small
-            # temporaries, not half a dozen float planes of the whole box.
-            box_rows, box_cols = box
-            for top in range(0, len(sampled), CONVERT_ROWS):
-                block = slice(top, top + CONVERT_ROWS)
-                canvas_rows = slice(box_rows.start + top, min(box_rows.stop, box_rows.start + top + CONVERT_ROWS))
-                exposure.apply(sampled[block], grid_squared_tangents(canvas_K, canvas_rows, box_cols),
-                               squared_tangents(uv[block], scene.views[index].camera.K))
+            exposure.apply(sampled, grid_squared_tangents(canvas_K, rows, cols), squared_tangents(uv, view.camera.K))
         elif (exposure.gain != 1).any():
             exposure.apply_gain(sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
         np.clip(sampled, 0.0, 1.0, out=sampled)
         # OpenCV's masked copy, into the canvas's rows and columns in place: several times
         # faster than numpy's copyto(where=) with a broadcast mask.
-        cv2.copyTo(sampled, mine[box].view(np.uint8), image[box])
+        cv2.copyTo(sampled, (raster.layer[rows, cols] == k).view(np.uint8), image[rows, cols])
+
+    blocks = []
+    for k in range(len(indices)):
+        mine = raster.layer == k
+        rows, cols = np.flatnonzero(mine.any(axis=1)), np.flatnonzero(mine.any(axis=0))
+        if rows.size:
+            columns = slice(int(cols[0]), int(cols[-1]) + 1)
+            blocks += [(k, slice(top, min(top + CONVERT_ROWS, int(rows[-1]) + 1)), columns)
+                       for top in range(int(rows[0]), int(rows[-1]) + 1, CONVERT_ROWS)]
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(lambda block: sample(*block), blocks))
     return image
 
 
