@@ -19,6 +19,8 @@ border, so the reference's own border pixels blend with what the other views saw
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
@@ -67,11 +69,13 @@ def local_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray
         return cv2.GaussianBlur(shrunk, (0, 0), sigma / factor, borderType=cv2.BORDER_REFLECT)
 
     # The weight on three channels, multiplied in by OpenCV: numpy's broadcast of an (h, w, 1)
-    # factor is several times slower on photos of many megapixels.
+    # factor is several times slower on photos of many megapixels. The three smoothed planes
+    # are independent, and OpenCV's products and resizes run on one core each: two threads.
     weight3 = cv2.cvtColor(weight, cv2.COLOR_GRAY2RGB)
-    support = smooth(weight)[..., None]
-    numerator = smooth(cv2.multiply(reference, weight3))
-    denominator = smooth(cv2.multiply(under, weight3))
+    with ThreadPoolExecutor(2) as pool:
+        numerator, denominator = (pool.submit(lambda a: smooth(cv2.multiply(a, weight3)), a) for a in (reference, under))
+        support = smooth(weight)[..., None]
+        numerator, denominator = numerator.result(), denominator.result()
     with np.errstate(divide="ignore", invalid="ignore"):
         gain = np.where((support > 1e-3) & (denominator > 1e-3), numerator / denominator, 1.0)
     return cv2.resize(np.clip(gain, *GAIN_RANGE).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
