@@ -302,15 +302,24 @@ def _cosine_distance(cosine: np.ndarray) -> np.ndarray:
 def _approximate_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, k: int):
     """As :func:`_exact_neighbours`, from FLANN's randomised k-d trees; the way back is
     searched only from features of b that are some feature's nearest neighbour (the only rows
-    :func:`match` reads; the others stay at index -1)."""
+    :func:`match` reads; the others stay at index -1). ``k`` is at most either side's count."""
     def search(query, train):
-        matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": FLANN_TREES}, {"checks": FLANN_CHECKS})
-        dist = np.full((len(query), k), np.inf, np.float32)
-        idx = np.full((len(query), k), -1, np.int64)
-        for q, row in enumerate(matcher.knnMatch(query, train, k=k)):
-            dist[q, :len(row)] = [m.distance for m in row]
-            idx[q, :len(row)] = [m.trainIdx for m in row]
-        return dist, idx
+        index = cv2.flann_Index(train, {"algorithm": 1, "trees": FLANN_TREES})
+
+        def rows(chunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if not len(chunk):
+                return np.zeros((0, k), np.int32), np.zeros((0, k), np.float32)
+            return index.knnSearch(chunk, k, params={"checks": FLANN_CHECKS})
+
+        # Each query is searched on its own in the same trees: half of them on each core.
+        half = len(query) // 2
+        with ThreadPoolExecutor(1) as pool:
+            second = pool.submit(rows, query[half:])
+            (idx_first, squared_first), (idx_second, squared_second) = rows(query[:half]), second.result()
+        idx = np.concatenate([idx_first, idx_second]).astype(np.int64)
+        squared = np.concatenate([squared_first, squared_second])
+        # FLANN gives squared L2 distances, and -1 where fewer than k neighbours were reached.
+        return np.where(idx >= 0, np.sqrt(np.maximum(squared, 0.0)), np.inf).astype(np.float32), idx
 
     dist_ab, idx_ab = search(desc_a, desc_b)
     reached = np.unique(idx_ab[:, 0])

@@ -248,3 +248,20 @@ def test_conversions_by_row_blocks_equal_one_pass_over_the_whole_image(dtype):
     rounded = np.clip(np.rint(np.float32(255.0) * image.astype(np.float32)), 0, 255).astype(np.uint8)
     np.testing.assert_array_equal(to_uint8(image), rounded)
     np.testing.assert_array_equal(to_uint8(image[..., 1]), rounded[..., 1])
+
+
+def test_approximate_neighbours_split_on_two_cores_are_one_flann_search():
+    """Each half of the queries searched in the same trees gives what OpenCV's FLANN matcher
+    gives for all of them at once (same seed, same trees): indices, and L2 distances (not
+    FLANN's squared ones)."""
+    from pis3r.features import FLANN_CHECKS, FLANN_TREES, _approximate_neighbours
+
+    rng = np.random.default_rng(9)
+    a, b = (rng.random((n, 128), dtype=np.float32) for n in (301, 250))
+    cv2.setRNGSeed(0)
+    (dist, idx), _ = _approximate_neighbours(a, b, 5)
+    cv2.setRNGSeed(0)
+    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": FLANN_TREES}, {"checks": FLANN_CHECKS})
+    rows = matcher.knnMatch(a, b, k=5)
+    np.testing.assert_array_equal(idx, [[m.trainIdx for m in row] for row in rows])
+    np.testing.assert_allclose(dist, [[m.distance for m in row] for row in rows], rtol=1e-6)
