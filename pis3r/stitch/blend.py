@@ -73,7 +73,8 @@ def local_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray
     # are independent, and OpenCV's products and resizes run on one core each: two threads.
     weight3 = cv2.cvtColor(weight, cv2.COLOR_GRAY2RGB)
     with ThreadPoolExecutor(2) as pool:
-        numerator, denominator = (pool.submit(lambda a: smooth(cv2.multiply(a, weight3)), a) for a in (reference, under))
+        numerator, denominator = (pool.submit(lambda a: smooth(cv2.multiply(a, weight3)), a)
+                                  for a in (reference, under))
         support = smooth(weight)[..., None]
         numerator, denominator = numerator.result(), denominator.result()
     with np.errstate(divide="ignore", invalid="ignore"):
