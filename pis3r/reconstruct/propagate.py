@@ -160,9 +160,10 @@ class _RedBlack:
         self.red, self.black = _red_black(*grid)
         self.b = b
         self.inverse_red = (1.0 / A.diagonal()[self.red]).reshape(-1, *[1] * (b.ndim - 1))
-        self.black_red = A[self.black][:, self.red]
+        black_rows = A[self.black]
+        self.black_red = black_rows[:, self.red]
         elimination = self.black_red @ sp.diags(self.inverse_red.ravel()) @ self.black_red.T
-        self.reduced = A[self.black][:, self.black] - elimination
+        self.reduced = black_rows[:, self.black] - elimination
         self.rhs = np.ascontiguousarray(b[self.black] - self.black_red @ (self.inverse_red * b[self.red]), np.float64)
 
     def solution(self, black: np.ndarray) -> np.ndarray:
