@@ -107,6 +107,54 @@ def test_the_command_keeps_freed_arrays_for_the_next_stage_instead_of_faulting_t
     assert int(default_faults) > 500 and int(faults) < 50
 
 
+REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED = r"""
+import resource, sys, threading
+import cv2
+import numpy as np
+from pis3r.cli import reuse_freed_memory
+
+applied = reuse_freed_memory() if sys.argv[1] == "reuse" else None
+image, small = np.ones((1000, 1000), np.float32), np.ones((8, 8), np.float32)
+both_started = threading.Barrier(2)
+
+
+def worker(turn: threading.Event, done: threading.Event) -> None:
+    # Two threads alive together, as a stage's pool: by default each allocates from its own arena.
+    cv2.add(small, 1.0)
+    both_started.wait()
+    turn.wait()
+    # A 4 MB image OpenCV allocates (malloc), touches and frees.
+    cv2.add(image, 1.0)
+    done.set()
+
+
+# The main thread allocates from the heap first, as the command does before its stages start.
+cv2.add(image, 1.0)
+turns, dones = [threading.Event(), threading.Event()], [threading.Event(), threading.Event()]
+threads = [threading.Thread(target=worker, args=pair) for pair in zip(turns, dones)]
+for thread in threads:
+    thread.start()
+turns[0].set()
+dones[0].wait()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+turns[1].set()
+dones[1].wait()
+print(applied, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+for thread in threads:
+    thread.join()
+"""
+
+
+def test_the_command_serves_every_thread_from_one_heap_so_a_worker_reuses_what_another_freed():
+    """``pis3r`` keeps one malloc arena (``ARENAS``): a block a worker thread freed is reused by
+    the next worker instead of each faulting in fresh pages in an arena of its own."""
+    applied, faults = _python("-c", REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED, "reuse").split()
+    if applied != "True":
+        pytest.skip("the C library has no mallopt (not glibc)")
+    _, default_faults = _python("-c", REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED, "default").split()
+    assert int(default_faults) > 500 and int(faults) < 100
+
+
 @pytest.mark.parametrize("command, applied", [("stitch", True), ("batch", True), ("serve", False)])
 def test_one_off_commands_keep_freed_memory_and_the_web_server_hands_it_back(command, applied, monkeypatch):
     from click.testing import CliRunner
