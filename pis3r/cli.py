@@ -55,6 +55,37 @@ def reuse_freed_memory() -> bool:
     return all([bool(mallopt(option, value)) for option, value in settings])
 
 
+# After these subcommands the process ends through Python's teardown: they start a server or
+# worker processes, whose shutdown hooks must run. After the others it ends at once (run).
+KEEP_TEARDOWN = ("serve", "batch")
+# Set by ``main`` for the command being run: whether ``run`` may end the process at once.
+_process = {"ends_at_once": False}
+
+
+def run() -> None:
+    """The ``pis3r`` program (the installed script, ``python -m pis3r.cli``): :func:`main`, and
+    after a one-off command the process ends as soon as the streams are flushed, with its exit
+    code. Its outputs are complete by then (written to temporary names and renamed); what
+    Python's teardown would add is freeing every object and joining idle worker threads, and
+    the libraries' exit hooks (OpenCV's, OpenBLAS's and Mesa's threads, the GL context): 0.12 s
+    of lpc-eyot's 2.4 s."""
+    try:
+        main()
+        code = 0
+    except SystemExit as exc:
+        if not _process["ends_at_once"]:
+            raise
+        code = exc.code
+    if isinstance(code, str):
+        click.echo(code, err=True)
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            continue
+    os._exit(code if isinstance(code, int) else (0 if code is None else 1))
+
+
 class Pis3rGroup(click.Group):
     """A click group that turns every :class:`Pis3rError` into one line + exit code."""
 
@@ -105,8 +136,10 @@ def main() -> None:
     """
     # A one-off command ends soon and frees everything; the web server runs on and hands
     # its memory back between jobs.
-    if click.get_current_context().invoked_subcommand != "serve":
+    command = click.get_current_context().invoked_subcommand
+    if command != "serve":
         reuse_freed_memory()
+    _process["ends_at_once"] = command not in KEEP_TEARDOWN
 
 
 @main.command("stitch")
@@ -188,4 +221,4 @@ for _command in (synth_command, eval_command, train_refiner_command, batch_comma
     main.add_command(_command)
 
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    run()

@@ -71,7 +71,7 @@ def test_looking_for_vggt_weights_in_an_empty_cache_imports_no_download_machiner
 
 @pytest.mark.parametrize("args", [["--help"], ["stitch", "--help"], ["batch", "--help"]])
 def test_help_imports_neither_torch_nor_scipy(args):
-    # What the installed ``pis3r`` script runs (pyproject: pis3r.cli:main).
+    # What the installed ``pis3r`` script runs (pyproject: pis3r.cli:run, which calls main).
     code = ("import sys\nfrom pis3r.cli import main\n"
             "try:\n    main(sys.argv[1:], prog_name='pis3r')\nexcept SystemExit:\n    pass\n"
             "print('torch' in sys.modules, 'scipy' in sys.modules, file=sys.stderr)")
@@ -153,6 +153,36 @@ def test_the_command_serves_every_thread_from_one_heap_so_a_worker_reuses_what_a
         pytest.skip("the C library has no mallopt (not glibc)")
     _, default_faults = _python("-c", REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED, "default").split()
     assert int(default_faults) > 500 and int(faults) < 100
+
+
+PROGRAM_WITH_AN_EXIT_HOOK = r"""
+import atexit, sys
+from pis3r.cli import run
+
+atexit.register(lambda: print("teardown ran", file=sys.stderr))
+sys.argv = ["pis3r", *sys.argv[1:]]
+run()
+"""
+
+
+@pytest.mark.parametrize("args, teardown", [
+    (["stitch", "--help"], False),
+    (["stitch", "missing.jpg", "other.jpg", "-o", "out"], False),
+    (["serve", "--help"], True),
+    (["batch", "--help"], True),
+])
+def test_the_program_ends_at_once_after_a_one_off_command_with_its_output_and_exit_code(args, teardown, tmp_path):
+    """``pis3r`` (:func:`pis3r.cli.run`) skips Python's teardown after a one-off command, yet
+    what it printed arrives and its exit code is kept; after commands that start servers or
+    worker processes the teardown (their shutdown hooks) runs."""
+    proc = subprocess.run([sys.executable, "-c", PROGRAM_WITH_AN_EXIT_HOOK, *args], capture_output=True,
+                          text=True, timeout=120, cwd=tmp_path)
+    if "--help" in args:
+        assert proc.returncode == 0 and "Usage:" in proc.stdout, proc.stderr[-2000:]
+    else:
+        errors = [line for line in proc.stderr.splitlines() if line.startswith("pis3r: error")]
+        assert proc.returncode != 0 and len(errors) == 1 and "missing.jpg" in errors[0], proc.stderr[-2000:]
+    assert ("teardown ran" in proc.stderr) == teardown
 
 
 @pytest.mark.parametrize("command, applied", [("stitch", True), ("batch", True), ("serve", False)])
