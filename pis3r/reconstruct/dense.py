@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from pis3r.features import to_gray_u8
-from pis3r.reconstruct.geometry import triangulate_depth
+from pis3r.reconstruct.geometry import pixel_rays, triangulate_depth
 from pis3r.scene import Deferrable, Deferred
 
 
@@ -122,26 +122,27 @@ def _depth_from_flow(forward, backward, K_a, K_b, R, t, gray_a) -> DepthMeasurem
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     pix_a = np.stack([xs, ys], axis=-1).reshape(-1, 2)
     pix_b = forward.reshape(-1, 2)
-    inside = (
-        np.isfinite(pix_b).all(axis=1)
-        & (pix_b[:, 0] >= 0) & (pix_b[:, 0] <= wb - 1)
-        & (pix_b[:, 1] >= 0) & (pix_b[:, 1] <= hb - 1)
-    )
-    back = cv2.remap(
+    # x and y apart, each contiguous: numpy's reductions along rows of 2 (norm, all over axis 1)
+    # cost several times the elementwise operations on the grid's hundreds of thousands of pixels.
+    x_b, y_b = np.ascontiguousarray(pix_b.T)
+    inside = np.isfinite(x_b) & np.isfinite(y_b) & (x_b >= 0) & (x_b <= wb - 1) & (y_b >= 0) & (y_b <= hb - 1)
+    back_x, back_y = cv2.split(cv2.remap(
         backward.astype(np.float32),
-        np.nan_to_num(pix_b[:, 0]).reshape(h, w).astype(np.float32),
-        np.nan_to_num(pix_b[:, 1]).reshape(h, w).astype(np.float32),
+        np.nan_to_num(x_b).reshape(h, w).astype(np.float32),
+        np.nan_to_num(y_b).reshape(h, w).astype(np.float32),
         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan,
-    ).reshape(-1, 2)
-    fb_error = np.linalg.norm(back - pix_a, axis=1)
+    ))
+    fb_x, fb_y = back_x.ravel() - xs.ravel(), back_y.ravel() - ys.ravel()
+    fb_error = np.sqrt(fb_x * fb_x + fb_y * fb_y)
     fb_error[~np.isfinite(fb_error)] = np.inf
 
-    depth, angle = triangulate_depth(pix_a, np.nan_to_num(pix_b), K_a, K_b, R, t)
-    X_b = (np.hstack([pix_a, np.ones((len(pix_a), 1))]) @ np.linalg.inv(K_a).T) * depth[:, None] @ R.T + t
+    rays_a = pixel_rays(pix_a, K_a)
+    depth, angle = triangulate_depth(pix_a, np.nan_to_num(pix_b), K_a, K_b, R, t, rays_a)
+    X_b = rays_a * depth[:, None] @ R.T + t
     with np.errstate(invalid="ignore", divide="ignore"):
         reproj = X_b @ K_b.T
-        reproj = reproj[:, :2] / reproj[:, 2:3]
-    epi_error = np.linalg.norm(reproj - pix_b, axis=1)
+        epi_x, epi_y = reproj[:, 0] / reproj[:, 2] - x_b, reproj[:, 1] / reproj[:, 2] - y_b
+    epi_error = np.sqrt(epi_x * epi_x + epi_y * epi_y)
 
     scale = np.hypot(h, w) / np.hypot(1024, 768)
     ok = inside & (depth > 0) & (X_b[:, 2] > 0) & np.isfinite(epi_error)

@@ -256,34 +256,39 @@ def homography_decompositions(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, p
     return [solution for solution, score in zip(solutions, scores) if score > best - 1e-9]
 
 
+def pixel_rays(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` rays ``K^-1 (u, v, 1)`` of pixels ``pix`` ``(N, 2)`` (at unit depth)."""
+    return np.hstack([pix, np.ones((len(pix), 1))]) @ np.linalg.inv(K).T
+
+
 def triangulate_depth(
-    pix_a: np.ndarray, pix_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, R: np.ndarray, t: np.ndarray
+    pix_a: np.ndarray, pix_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, R: np.ndarray, t: np.ndarray,
+    rays_a: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Depth along the rays of camera a of correspondences ``(N, 2)`` a <-> b.
 
     Linear closed form: the point ``s * r_a`` whose projection in b best matches
     ``pix_b`` (``x_b = R x_a + t``). Returns ``(depth_a (N,), angle (N,) radians)``
-    where ``angle`` is the triangulation angle (small = unreliable).
+    where ``angle`` is the triangulation angle (small = unreliable). ``rays_a``: the
+    :func:`pixel_rays` of ``pix_a`` when the caller has them.
     """
-    ones = np.ones((len(pix_a), 1))
-    r_a = np.hstack([pix_a, ones]) @ np.linalg.inv(K_a).T
-    u, v = pix_b[:, 0], pix_b[:, 1]
-    q = (r_a @ R.T) @ K_b.T
-    k = K_b @ t
-
-    def cross_with_pixel(x, y, z):
-        # (u, v, 1) x (x, y, z) by components: np.cross on (N, 3) rows is several times slower
-        # on the dense flow's hundreds of thousands of pixels.
-        return v * z - y, x - u * z, u * y - v * x
-
-    a = cross_with_pixel(q[:, 0], q[:, 1], q[:, 2])
-    b = cross_with_pixel(*k)
-    depth = -(a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + 1e-18)
-    X_a = r_a * depth[:, None]
-    centre_b = -R.T @ t
-    v_a = X_a
-    v_b = X_a - centre_b
-    cos = np.sum(v_a * v_b, axis=1) / (np.linalg.norm(v_a, axis=1) * np.linalg.norm(v_b, axis=1) + 1e-18)
+    r_a = pixel_rays(pix_a, K_a) if rays_a is None else rays_a
+    # By components, each a contiguous (N,) array: on the dense flow's hundreds of thousands
+    # of pixels, numpy's products and sums along rows of 3 (np.cross, np.sum and norm over
+    # axis 1) cost several times as much. The sums are the same, term by term and in order.
+    u, v = np.ascontiguousarray(pix_b.T)
+    q_x, q_y, q_z = np.ascontiguousarray(((r_a @ R.T) @ K_b.T).T)
+    k_x, k_y, k_z = K_b @ t
+    # (u, v, 1) x q and (u, v, 1) x k.
+    a_x, a_y, a_z = v * q_z - q_y, q_x - u * q_z, u * q_y - v * q_x
+    b_x, b_y, b_z = v * k_z - k_y, k_x - u * k_z, u * k_y - v * k_x
+    depth = -(a_x * b_x + a_y * b_y + a_z * b_z) / (a_x * a_x + a_y * a_y + a_z * a_z + 1e-18)
+    # The angle at the point between its rays to the two cameras' centres.
+    x, y, z = np.ascontiguousarray(r_a.T) * depth
+    c_x, c_y, c_z = -R.T @ t
+    to_b_x, to_b_y, to_b_z = x - c_x, y - c_y, z - c_z
+    cos = (x * to_b_x + y * to_b_y + z * to_b_z) / (
+        np.sqrt(x * x + y * y + z * z) * np.sqrt(to_b_x * to_b_x + to_b_y * to_b_y + to_b_z * to_b_z) + 1e-18)
     return depth, np.arccos(np.clip(cos, -1, 1))
 
 
