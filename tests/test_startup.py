@@ -80,6 +80,13 @@ def test_help_imports_neither_torch_nor_scipy(args):
     assert proc.stderr.split()[-2:] == ["False", "False"], proc.stderr[-2000:]
 
 
+def test_the_program_imports_the_synth_renderer_only_when_synth_runs():
+    """Every command imports the modules that list the subcommands; the synth scenes and
+    renderer (24 ms) wait for ``pis3r synth`` itself."""
+    code = "import sys\nimport pis3r.cli\nprint('pis3r.synth.dataset' in sys.modules)"
+    assert _python("-c", code).split() == ["False"]
+
+
 REFAULTS_OF_A_FREED_ARRAY = r"""
 import resource, sys
 import cv2
