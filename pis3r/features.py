@@ -119,7 +119,8 @@ def _features(keypoints, desc: np.ndarray | None, scale: float, root_sift: bool)
     if root_sift:
         desc = desc / (np.abs(desc).sum(axis=1, keepdims=True) + 1e-7)
         desc = np.sqrt(desc).astype(np.float32)
-    pts = np.array([kp.pt for kp in keypoints], dtype=np.float64)
+    # OpenCV's own conversion: a list of every point through Python took 20 ms of ASIFT's 18k.
+    pts = cv2.KeyPoint_convert(keypoints).reshape(-1, 2).astype(np.float64)
     if scale < 1.0:
         pts = (pts + 0.5) / scale - 0.5
     return Features(pts, desc, root_sift, np.array([kp.response for kp in keypoints], np.float32))
