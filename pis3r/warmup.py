@@ -4,7 +4,7 @@ the first stage runs, and its BLAS threads (issue 12).
 The classical backend's first stage, finding features, spends about half a second on a 1 MP
 pair inside OpenCV with the GIL released. Meanwhile a thread builds OpenCV's CIE Lab tables
 (0.1 s at a process's first Lab conversion, which the depth fill's edge weights make),
-imports the scipy modules the later stages call (its sparse solvers and k-d tree) and creates the
+imports the scipy modules the later stages call (its sparse solvers) and creates the
 headless OpenGL context the renderer draws with (EGL on Mesa: 0.1-0.3 s). A stage that needs
 one of them before the thread is done waits for it (OpenCV's own lock, Python's import lock,
 :mod:`pis3r.gl`'s lock): results do not change, only when the cost is paid.
@@ -26,9 +26,11 @@ from threadpoolctl import threadpool_limits
 
 from pis3r import gl
 
-# What the classical backend's stages import on first use: depth fill, match refinement. (Its
-# pose and rotation fits are pis3r.reconstruct.robust_lsq: scipy.optimize is never imported.)
-CLASSICAL_MODULES = ("scipy.sparse.linalg", "scipy.spatial")
+# What the classical backend's stages import on first use: the depth fill's solvers. (Its pose
+# and rotation fits are pis3r.reconstruct.robust_lsq: scipy.optimize is never imported.) ASIFT's
+# match refinement imports scipy.spatial (0.12 s of CPU) when it first runs: the pairs SIFT
+# matches, most of them, do not pay for it.
+CLASSICAL_MODULES = ("scipy.sparse.linalg",)
 
 _started = threading.Lock()
 
