@@ -55,20 +55,20 @@ def reuse_freed_memory() -> bool:
     return all([bool(mallopt(option, value)) for option, value in settings])
 
 
-# After these subcommands the process ends through Python's teardown: they start a server or
-# worker processes, whose shutdown hooks must run. After the others it ends at once (run).
-KEEP_TEARDOWN = ("serve", "batch")
+# After these subcommands the process ends at once (run): they start no server, worker process
+# or process pool (serve, batch, eval and train-refiner do), whose shutdown hooks must run.
+ENDS_AT_ONCE = ("stitch", "synth", "fetch-weights")
 # Set by ``main`` for the command being run: whether ``run`` may end the process at once.
 _process = {"ends_at_once": False}
 
 
 def run() -> None:
     """The ``pis3r`` program (the installed script, ``python -m pis3r.cli``): :func:`main`, and
-    after a one-off command the process ends as soon as the streams are flushed, with its exit
-    code. Its outputs are complete by then (written to temporary names and renamed); what
-    Python's teardown would add is freeing every object and joining idle worker threads, and
-    the libraries' exit hooks (OpenCV's, OpenBLAS's and Mesa's threads, the GL context): 0.12 s
-    of lpc-eyot's 2.4 s."""
+    after a command of ``ENDS_AT_ONCE`` the process ends as soon as the streams are flushed,
+    with its exit code. Its outputs are complete by then (written to temporary names and
+    renamed); what Python's teardown would add is freeing every object and joining idle worker
+    threads, and the libraries' exit hooks (OpenCV's, OpenBLAS's and Mesa's threads, the GL
+    context): 0.12 s of lpc-eyot's 2.4 s."""
     try:
         main()
         code = 0
@@ -139,7 +139,7 @@ def main() -> None:
     command = click.get_current_context().invoked_subcommand
     if command != "serve":
         reuse_freed_memory()
-    _process["ends_at_once"] = command not in KEEP_TEARDOWN
+    _process["ends_at_once"] = command in ENDS_AT_ONCE
 
 
 @main.command("stitch")

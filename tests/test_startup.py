@@ -176,13 +176,16 @@ run()
 @pytest.mark.parametrize("args, teardown", [
     (["stitch", "--help"], False),
     (["stitch", "missing.jpg", "other.jpg", "-o", "out"], False),
+    (["synth", "--help"], False),
     (["serve", "--help"], True),
     (["batch", "--help"], True),
+    (["eval", "--help"], True),
+    (["train-refiner", "--help"], True),
 ])
 def test_the_program_ends_at_once_after_a_one_off_command_with_its_output_and_exit_code(args, teardown, tmp_path):
-    """``pis3r`` (:func:`pis3r.cli.run`) skips Python's teardown after a one-off command, yet
-    what it printed arrives and its exit code is kept; after commands that start servers or
-    worker processes the teardown (their shutdown hooks) runs."""
+    """``pis3r`` (:func:`pis3r.cli.run`) skips Python's teardown after a command that starts no
+    other process, yet what it printed arrives and its exit code is kept; after commands that
+    start a server, worker processes or a process pool the teardown (their shutdown hooks) runs."""
     proc = subprocess.run([sys.executable, "-c", PROGRAM_WITH_AN_EXIT_HOOK, *args], capture_output=True,
                           text=True, timeout=120, cwd=tmp_path)
     if "--help" in args:
