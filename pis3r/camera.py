@@ -22,6 +22,11 @@ def intrinsics(focal: float, width: int, height: int) -> np.ndarray:
     )
 
 
+def pixel_rays(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` rays ``K^-1 (u, v, 1)`` of pixels ``pix`` ``(N, 2)`` (at unit depth)."""
+    return np.hstack([pix, np.ones((len(pix), 1))]) @ np.linalg.inv(K).T
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera: intrinsics ``K (3, 3)``, world-to-camera ``R (3, 3)``, ``t (3,)``,

@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 
 from pis3r.reconstruct.dense import _depth_from_flow
-from pis3r.reconstruct.geometry import pixel_rays, triangulate_depth
+from pis3r.camera import pixel_rays
+from pis3r.reconstruct.geometry import triangulate_depth
 
 K_A = np.array([[90.0, 0.0, 41.0], [0.0, 95.0, 28.0], [0.0, 0.0, 1.0]])
 K_B = np.array([[110.0, 0.0, 37.0], [0.0, 105.0, 31.0], [0.0, 0.0, 1.0]])

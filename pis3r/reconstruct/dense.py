@@ -17,8 +17,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pis3r.camera import pixel_rays
 from pis3r.features import to_gray_u8
-from pis3r.reconstruct.geometry import pixel_rays, triangulate_depth
+from pis3r.reconstruct.geometry import triangulate_depth
 from pis3r.scene import Deferrable, Deferred
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics
+from pis3r.camera import intrinsics, pixel_rays
 from pis3r.features import Matches
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 
@@ -114,8 +114,7 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
     rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
     ``refine_focal`` both focals scale together (their ratio is kept)."""
-    rays_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ np.linalg.inv(K_a).T
-    rays_b = np.hstack([matches.pts_b, np.ones((len(matches), 1))]) @ np.linalg.inv(K_b).T
+    rays_a, rays_b = pixel_rays(matches.pts_a, K_a), pixel_rays(matches.pts_b, K_b)
     # Kabsch start: the rotation that best aligns the unit rays.
     u_a = rays_a / np.linalg.norm(rays_a, axis=1, keepdims=True)
     u_b = rays_b / np.linalg.norm(rays_b, axis=1, keepdims=True)

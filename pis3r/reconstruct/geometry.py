@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics, sampson_distance, sampson_homogeneous, sampson_jacobian
+from pis3r.camera import intrinsics, pixel_rays, sampson_distance, sampson_homogeneous, sampson_jacobian
 from pis3r.features import Matches
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
@@ -256,11 +256,6 @@ def homography_decompositions(H: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, p
     return [solution for solution, score in zip(solutions, scores) if score > best - 1e-9]
 
 
-def pixel_rays(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` rays ``K^-1 (u, v, 1)`` of pixels ``pix`` ``(N, 2)`` (at unit depth)."""
-    return np.hstack([pix, np.ones((len(pix), 1))]) @ np.linalg.inv(K).T
-
-
 def triangulate_depth(
     pix_a: np.ndarray, pix_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray, R: np.ndarray, t: np.ndarray,
     rays_a: np.ndarray | None = None,
@@ -270,7 +265,7 @@ def triangulate_depth(
     Linear closed form: the point ``s * r_a`` whose projection in b best matches
     ``pix_b`` (``x_b = R x_a + t``). Returns ``(depth_a (N,), angle (N,) radians)``
     where ``angle`` is the triangulation angle (small = unreliable). ``rays_a``: the
-    :func:`pixel_rays` of ``pix_a`` when the caller has them.
+    :func:`pis3r.camera.pixel_rays` of ``pix_a`` when the caller has them.
     """
     r_a = pixel_rays(pix_a, K_a) if rays_a is None else rays_a
     # By components, each a contiguous (N,) array: on the dense flow's hundreds of thousands
