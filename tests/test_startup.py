@@ -104,15 +104,22 @@ print(applied, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
+def _faults_with_and_without_the_command_s_heap_settings(code: str) -> tuple[int, int]:
+    """The page faults ``code`` prints after ``reuse_freed_memory`` and without it (skips the
+    test where the C library has no ``mallopt``)."""
+    applied, faults = _python("-c", code, "reuse").split()
+    if applied != "True":
+        pytest.skip("the C library has no mallopt (not glibc)")
+    _, default_faults = _python("-c", code, "default").split()
+    return int(faults), int(default_faults)
+
+
 def test_the_command_keeps_freed_arrays_for_the_next_stage_instead_of_faulting_them_in_again():
     """``pis3r`` raises glibc's mmap threshold (``reuse_freed_memory``): an image that OpenCV
     allocated, freed and allocates again costs no new page faults (by default glibc hands
     the block back and takes fresh pages: one fault per 4 KB page)."""
-    applied, faults = _python("-c", REFAULTS_OF_A_FREED_ARRAY, "reuse").split()
-    if applied != "True":
-        pytest.skip("the C library has no mallopt (not glibc)")
-    _, default_faults = _python("-c", REFAULTS_OF_A_FREED_ARRAY, "default").split()
-    assert int(default_faults) > 500 and int(faults) < 50
+    faults, default_faults = _faults_with_and_without_the_command_s_heap_settings(REFAULTS_OF_A_FREED_ARRAY)
+    assert default_faults > 500 and faults < 50
 
 
 REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED = r"""
@@ -156,11 +163,9 @@ for thread in threads:
 def test_the_command_serves_every_thread_from_one_heap_so_a_worker_reuses_what_another_freed():
     """``pis3r`` keeps one malloc arena (``ARENAS``): a block a worker thread freed is reused by
     the next worker instead of each faulting in fresh pages in an arena of its own."""
-    applied, faults = _python("-c", REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED, "reuse").split()
-    if applied != "True":
-        pytest.skip("the C library has no mallopt (not glibc)")
-    _, default_faults = _python("-c", REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED, "default").split()
-    assert int(default_faults) > 500 and int(faults) < 100
+    faults, default_faults = _faults_with_and_without_the_command_s_heap_settings(
+        REFAULTS_OF_AN_ARRAY_ANOTHER_THREAD_FREED)
+    assert default_faults > 500 and faults < 100
 
 
 PROGRAM_WITH_AN_EXIT_HOOK = r"""
