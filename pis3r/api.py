@@ -226,7 +226,8 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in scene.views],
         "dropped": [dropped.to_dict() for dropped in scene.dropped],
         "warnings": list(warnings),
-        "details": {"model_reason": scene.model_reason},
+        "details": {"model_reason": scene.model_reason,
+                    **{key: scene.info[key] for key in ("joint_refinement",) if key in scene.info}},
         "refine": {"method": result.refine,
                    "region": options.refine_region, "steps": options.refine_steps},
     }

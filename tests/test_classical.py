@@ -71,13 +71,13 @@ def test_an_unfilled_reference_keeps_only_what_the_pair_measured(analytic_pair, 
 def test_the_reference_s_depth_is_measured_and_filled_when_first_read(analytic_pair, monkeypatch):
     """A stitch onto the reference pastes its pixels: measuring and filling its depth wait for
     a reader (an export, another reference) and then give what an eager reconstruction does."""
-    from pis3r.reconstruct import classical, dense
+    from pis3r.reconstruct import dense, views
 
     _, _, ref_img, _, tgt_img, _ = analytic_pair
     photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
     fills, measures = [], []
-    propagate, from_flow = classical.propagate_inverse_depth, dense._depth_from_flow
-    monkeypatch.setattr(classical, "propagate_inverse_depth", lambda *a, **k: fills.append(1) or propagate(*a, **k))
+    propagate, from_flow = views.propagate_inverse_depth, dense._depth_from_flow
+    monkeypatch.setattr(views, "propagate_inverse_depth", lambda *a, **k: fills.append(1) or propagate(*a, **k))
     monkeypatch.setattr(dense, "_depth_from_flow", lambda *a, **k: measures.append(1) or from_flow(*a, **k))
     result = pis3r.stitch([ref_img, tgt_img], backend="classical", model="3d")
     assert len(fills) == 1 and len(measures) == 1  # the other view's alone

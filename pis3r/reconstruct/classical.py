@@ -7,10 +7,12 @@ Works offline on any machine. For the reference (view 0) and every other view:
    MAGSAC++ fundamental matrix; the homography model for a rotation or a plane, else 3-D;
    focal from ``--focal``, EXIF or self-calibration; the relative pose the epipolar
    geometry supports.
-2. Depth: the homography model's is constant (rotation) or its plane; the 3-D model's comes
-   from DIS flow after a homography pre-warp, forward-backward, epipolar and
-   triangulation-angle checks, sparse triangulated matches as extra seeds; then
-   :func:`propagate_inverse_depth` fills what only one view sees.
+2. With three or more photos, the poses and focal of the 3-D pairs refined together
+   (:mod:`pis3r.reconstruct.joint`: bundle adjustment over the reference's tracks).
+3. Depth (:mod:`pis3r.reconstruct.views`): the homography model's is constant (rotation) or
+   its plane; the 3-D model's comes from DIS flow after a homography pre-warp, forward-backward,
+   epipolar and triangulation-angle checks, sparse triangulated matches as extra seeds; then
+   :func:`pis3r.reconstruct.propagate.propagate_inverse_depth` fills what only one view sees.
 """
 
 from __future__ import annotations
@@ -23,36 +25,26 @@ from functools import partial
 import cv2
 import numpy as np
 
-from pis3r.camera import Camera
 from pis3r.errors import InputError, NotEnoughOverlapError, Pis3rError, ReconstructionError
 from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
+from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
 from pis3r.reconstruct.pairs import (FEW_INLIERS, ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches,
                                      estimate_pair)
-from pis3r.reconstruct.propagate import propagate_inverse_depth
+from pis3r.reconstruct.views import homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View
 
-WORK_MAX_SIDE = 640
 # A view that does not overlap the reference tries this many registered views (those it shares
 # the most mutual matches with among both photos' CHAIN_COUNT_FEATURES strongest SIFT features:
 # 0.03 s where all 8000 x 8000 take 0.4 s; the fountain's far views rank their three best
 # anchors as all features do, and the anchor's pair is then matched in full) before it is dropped.
 CHAIN_ANCHORS = 3
 CHAIN_COUNT_FEATURES = 2000
-
-
-def _resize(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
-    scale = min(1.0, max_side / max(image.shape[:2]))
-    if scale == 1.0:
-        return image, 1.0
-    size = (round(image.shape[1] * scale), round(image.shape[0] * scale))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), scale
 
 
 class ClassicalReconstructor:
@@ -78,40 +70,39 @@ class ClassicalReconstructor:
         it or too few of its SIFT matches with it agree, through a chain of registered photos
         (:meth:`_attach_through_others`; ASIFT with ``photos[0]`` only where none places it); with
         three or more photos, one that overlaps no registered photo is dropped
-        (``Scene.dropped``) instead of failing the rest. The model, parallax and match
-        counts reported are the first registered pair's."""
+        (``Scene.dropped``) instead of failing the rest, and the poses and focal of the photos
+        registered to ``photos[0]`` by SIFT are refined together
+        (:func:`pis3r.reconstruct.joint.refine_jointly`) before their depth is measured. The
+        model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = self.features(photos)
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
+        pairs: dict[int, PairGeometry] = {}
         registered: dict[int, View] = {}
         failures: dict[int, str] = {}
-        warnings, first, later = [], None, list(range(1, len(photos)))
-        # The first pair that registers fixes the reference's focal, frame and scale.
-        while later and first is None:
+        later = list(range(1, len(photos)))
+        # The first pair that registers fixes the reference's focal.
+        while later and not pairs:
             j = later.pop(0)
             try:
-                pair = self.pair_geometry(features[0], features[j], focal_ref, source, bool(self.options.focal),
-                                          len(photos) > 2)
-                view_ref, view_j = self._views(ref, photos[j], pair, None)
+                pairs[j] = self.pair_geometry(features[0], features[j], focal_ref, source, bool(self.options.focal),
+                                              len(photos) > 2)
             except Pis3rError as exc:
                 if len(photos) == 2:
                     raise
                 failures[j] = str(exc)
-                continue
-            first, registered[0], registered[j] = pair, view_ref, self._placed(view_j, pair, photos[j], ref, 0)
-            warnings += pair.warnings
-        if first is None:
-            reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
-            raise NotEnoughOverlapError(f"no image could be registered to {ref.name} ({reasons})")
+        if not pairs:
+            raise _unregistered(photos, failures)
+        first = next(iter(pairs.values()))
 
         # Later photos match the reference by SIFT alone first: one with fewer than FEW_INLIERS
         # consistent matches (``weak``) is placed through the photos it shares more with, and only
         # where none places it by ASIFT with the reference (seconds a photo), then chained again.
         weak: set[int] = set()
 
-        def register_to_reference(j: int, sift_first: bool = False):
+        def pair_with_reference(j: int, sift_first: bool) -> PairGeometry | Pis3rError:
             # OpenCV's random state is per thread: seeded here, each pair is repeatable
             # whatever runs beside it.
             cv2.setRNGSeed(0)
@@ -121,31 +112,63 @@ class ClassicalReconstructor:
                     inliers = self._consistent_matches(features[0], features[j], detector).inliers.sum()
                     if inliers < FEW_INLIERS:
                         weak.add(j)
-                        return f"only {inliers} of its SIFT matches with {ref.name} agree", None
+                        return ReconstructionError(f"only {inliers} of its SIFT matches with {ref.name} agree")
                 # Later pairs keep the first pair's reference focal.
-                pair = self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
+                return self.pair_geometry(features[0], features[j], float(first.K_a[0, 0]), first.focal_source,
                                           True, True, detector)
-                return pair, self._placed(self._views(ref, photos[j], pair, registered[0].depth)[1], pair, photos[j],
-                                          ref, 0)
             except Pis3rError as exc:
-                return exc, None
+                return exc
 
-        def register_all(views: list[int], sift_first: bool) -> None:
+        def pair_all(views: list[int], sift_first: bool) -> None:
             # Given the first pair, the others are independent: two at a time.
             with ThreadPoolExecutor(2) as pool:
-                for j, (pair, view_j) in zip(views, list(pool.map(lambda j: register_to_reference(j, sift_first),
-                                                                  views))):
-                    if view_j is None:
+                for j, pair in zip(views, list(pool.map(lambda j: pair_with_reference(j, sift_first), views))):
+                    if isinstance(pair, Pis3rError):
                         failures[j] = str(pair)
-                        continue
-                    warnings.extend(pair.warnings)
-                    registered[j] = view_j
-                    failures.pop(j, None)
+                    else:
+                        pairs[j] = pair
 
-        register_all(later, self.options.detector == "auto")
+        def view_with_reference(j: int) -> View | Pis3rError:
+            try:
+                view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
+                return self._placed(view_j, pairs[j], photos[j], ref, 0)
+            except Pis3rError as exc:
+                return exc
+
+        def place_all(views: list[int]) -> None:
+            with ThreadPoolExecutor(2) as pool:
+                for j, view_j in zip(views, list(pool.map(view_with_reference, views))):
+                    if isinstance(view_j, Pis3rError):
+                        failures[j] = str(view_j)
+                        del pairs[j]
+                    else:
+                        registered[j] = view_j
+                        failures.pop(j, None)
+
+        pair_all(later, self.options.detector == "auto")
+        joint = self._refine_jointly(pairs) if len(photos) > 2 else None
+        # The first pair whose depth can be measured fixes the scene's frame and scale.
+        for j in list(pairs):
+            try:
+                view_ref, view_j = self._views(ref, photos[j], pairs[j], None)
+            except Pis3rError as exc:
+                if len(photos) == 2:
+                    raise
+                failures[j] = str(exc)
+                del pairs[j]
+                continue
+            first, registered[0], registered[j] = pairs[j], view_ref, self._placed(view_j, pairs[j], photos[j], ref, 0)
+            break
+        if not registered:
+            raise _unregistered(photos, failures)
+        place_all([j for j in pairs if j not in registered])
+        warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
         warnings += self._attach_through_others(photos, features, registered, failures)
         if weak & failures.keys():
-            register_all(sorted(weak & failures.keys()), False)
+            retried = sorted(weak & failures.keys())
+            pair_all(retried, False)
+            place_all([j for j in retried if j in pairs])
+            warnings += [line for j in retried if j in registered for line in pairs[j].warnings]
             warnings += self._attach_through_others(photos, features, registered, failures)
         for j in failures:
             failures[j] += "; nor does it overlap any other registered image"
@@ -158,8 +181,19 @@ class ClassicalReconstructor:
             [registered[i] for i in indices], indices, dropped, model=model, model_reason=reason,
             focal=float(first.K_a[0, 0]), focal_source=first.focal_source, parallax=first.parallax,
             warnings=tuple(warnings),
-            info={"backend": self.name, "num_matches": first.num_matches, **first.info},
+            info={"backend": self.name, "num_matches": first.num_matches, **first.info,
+                  **({"joint_refinement": joint.to_dict()} if joint else {})},
         )
+
+    def _refine_jointly(self, pairs: dict[int, PairGeometry]) -> JointFit | None:
+        """The 3-D ``pairs`` (view index -> geometry with the reference) refined together, in
+        place, the focal too unless it is the user's; the fit, or ``None`` where fewer than two
+        can be."""
+        solid = {j: pair for j, pair in pairs.items() if pair.model == "3d"}
+        fit = refine_jointly(solid, refine_focal=not self.options.focal) if len(solid) >= 2 else None
+        if fit is not None:
+            pairs.update(fit.pairs)
+        return fit
 
     def _attach_through_others(self, photos: list[Photo], features: list[PhotoFeatures],
                                registered: dict[int, View], failures: dict[int, str]) -> list[str]:
@@ -280,11 +314,11 @@ class ClassicalReconstructor:
         """The pair's two views. With ``ref_depth`` (``ref``'s depth in the scene already
         built) only the other view, brought to that scale: the first is then ``None``."""
         if pair.model == "homography":
-            view_ref, view_other = self._views_homography(ref, other, pair)
+            view_ref, view_other = homography_views(ref, other, pair)
             measured_ref = view_ref
         else:
-            view_ref, view_other, measured_ref = self._views_3d(
-                ref, other, pair, fill_ref=ref_depth is None and self.options.fill_reference)
+            view_ref, view_other, measured_ref = views_3d(ref, other, pair, self._memoised, self.options.depth_fill,
+                                                          ref_depth is None and self.options.fill_reference)
         if ref_depth is None:
             return view_ref, view_other
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
@@ -309,89 +343,6 @@ class ClassicalReconstructor:
             if np.median(shift) < 0.5 and np.abs(a.pixels - b.pixels).mean() < 2.0 / 255:
                 raise InputError(f"{a.name} and {b.name} are the same image: there is nothing to stitch")
 
-    # -- depth: homography model ---------------------------------------------------------
-    @staticmethod
-    def _views_homography(ref: Photo, other: Photo, pair: PairGeometry):
-        """A rotation's views at depth 1; a plane's on that plane (``n . X = 1`` in the
-        reference), which renders exactly the pair's homography."""
-        R, t, n = pair.R, pair.t, pair.plane
-        if n is None:
-            depth_a = np.ones((ref.height, ref.width), np.float32)
-            depth_b = np.ones((other.height, other.width), np.float32)
-        else:
-            depth_a = geometry.plane_depth(pair.K_a, n, 1.0, ref.width, ref.height)
-            depth_b = geometry.plane_depth(pair.K_b, R @ n, 1.0 + float(n @ (R.T @ t)), other.width, other.height)
-        cam_a = Camera.identity(pair.K_a, ref.width, ref.height)
-        cam_b = Camera(pair.K_b, R, t, other.width, other.height)
-        return (
-            View(ref.pixels, cam_a, depth_a, (depth_a > 0).astype(np.float32), ref.name),
-            View(other.pixels, cam_b, depth_b, (depth_b > 0).astype(np.float32), other.name),
-        )
-
-    # -- depth: full 3-D model -----------------------------------------------------------
-    def _views_3d(self, ref: Photo, other: Photo, pair: PairGeometry, fill_ref: bool = True):
-        """``(view_ref, view_other, measured_ref)``: both views with their depth filled (without
-        ``fill_ref``, the reference keeps only the depth the pair measured on it) and the
-        reference's view with only that measured depth (0 where unmeasured)."""
-        K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
-        img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
-        img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
-        Kw_a = Camera.identity(K_a, ref.width, ref.height).scaled(s_a).K
-        Kw_b = Camera.identity(K_b, other.width, other.height).scaled(s_b).K
-        S_a = np.diag([s_a, s_a, 1.0])
-        S_b = np.diag([s_b, s_b, 1.0])
-        H_work = S_b @ H @ np.linalg.inv(S_a)
-
-        def measure():
-            return measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work, (inliers.pts_a + 0.5) * s_a - 0.5,
-                                (inliers.pts_b + 0.5) * s_b - 0.5)
-
-        meas_a, meas_b = self._memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes()), measure)
-        camera_a = Camera.identity(K_a, ref.width, ref.height)
-        camera_b = Camera(K_b, R, t, other.width, other.height)
-
-        def measured_on_ref():
-            # 0 where nothing reliable, at full resolution; read only by later pairs' scale ties
-            # and an unfilled reference's readers, like meas_a itself (pis3r.scene.Deferred).
-            measured = cv2.resize(np.where(meas_a.confidence > 0.05, meas_a.depth, 0.0).astype(np.float32),
-                                  (ref.width, ref.height), interpolation=cv2.INTER_NEAREST)
-            return measured, (measured > 0).astype(np.float32)
-
-        measured = Deferred(measured_on_ref)
-        unfilled_a = View(ref.pixels, camera_a, measured, measured, ref.name)
-        if not fill_ref:
-            return unfilled_a, self._filled_view(other, img_b, meas_b, camera_b), unfilled_a
-        # The reference's fill waits for its first reader (pis3r.scene.Deferred): a stitch onto
-        # the reference pastes its pixels. Each fill's two factorisations use both cores.
-        return (self._filled_view(ref, img_a, meas_a, camera_a, deferred=True),
-                self._filled_view(other, img_b, meas_b, camera_b), unfilled_a)
-
-    def _filled_view(self, photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera,
-                     deferred: bool = False) -> View:
-        """The view of ``photo`` with the depth measured on its working ``image`` filled
-        everywhere (``self.options.depth_fill``), at full resolution, cut at depth edges;
-        ``deferred``: filled when first read."""
-        method = self.options.depth_fill
-
-        def fill() -> tuple[np.ndarray, np.ndarray]:
-            if not (meas.confidence > 0.05).any():
-                raise ReconstructionError(f"{photo.name}: no reliable depth could be measured")
-            idepth = np.where(meas.depth > 0, 1.0 / np.maximum(meas.depth, 1e-12), 0.0)
-            dense, conf = propagate_inverse_depth(idepth, meas.confidence, image, method=method)
-            dense, conf = _to_full_resolution(dense, conf, photo.width, photo.height)
-            depth = np.divide(1.0, dense, dtype=np.float32)  # in place after: 12 MP temporaries are costly
-            depth[geometry.depth_edges(dense)] = 0.0
-            conf[~(depth > 0)] = 0.0  # the fill's own float32 array (or its resized copy)
-            return depth, conf
-
-        depth_and_confidence = (Deferred(fill),) * 2 if deferred else fill()
-        return View(photo.pixels, camera, *depth_and_confidence, photo.name)
-
-
-def _to_full_resolution(idepth: np.ndarray, conf: np.ndarray, width: int, height: int):
-    if idepth.shape == (height, width):
-        return idepth, conf
-    return (
-        cv2.resize(idepth, (width, height), interpolation=cv2.INTER_LINEAR),
-        cv2.resize(conf, (width, height), interpolation=cv2.INTER_LINEAR),
-    )
+def _unregistered(photos: list[Photo], failures: dict[int, str]) -> NotEnoughOverlapError:
+    reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())
+    return NotEnoughOverlapError(f"no image could be registered to {photos[0].name} ({reasons})")

@@ -50,6 +50,8 @@ from pis3r.subpixel import refine_matches
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
 FEW_INLIERS = 50
+# How the warning of a pair that leaves the focal free begins (more views may fix it).
+UNDETERMINED_FOCAL = "these two views do not determine the focal length"
 # ASIFT's matches replace SIFT's only with at least this many epipolar inliers: among its
 # hundreds of matches, a dozen agree on some fundamental matrix by chance.
 MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
@@ -325,7 +327,7 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
             why = ("the matches lie on one plane" if plane_only else
                    f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
             return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
-                f"these two views do not determine the focal length ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
+                f"{UNDETERMINED_FOCAL} ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
                 "the exported cameras depend on it, pass --focal if you know it"], details
         fit, source = seen, "vanishing points (both photos agree; the matches leave it free)"
     warnings = [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
