@@ -33,7 +33,7 @@ from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
 REPROJECTION_SCALE_PX = 1.0
 MAX_ITERATIONS = 100
 # Stop when an accepted step lowers the cost by less than this share of it.
-COST_TOLERANCE = 1e-6
+COST_TOLERANCE = 1e-5
 # Marquardt damping: the start, and the factors after a rejected and an accepted step.
 DAMPING_START, DAMPING_UP, DAMPING_DOWN = 1e-4, 10.0, 0.3
 # A step the cost does not follow even this damped ends the fit.
