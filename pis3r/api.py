@@ -227,7 +227,8 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "dropped": [dropped.to_dict() for dropped in scene.dropped],
         "warnings": list(warnings),
         "details": {"model_reason": scene.model_reason,
-                    **{key: scene.info[key] for key in ("joint_refinement",) if key in scene.info}},
+                    **({"joint_refinement": scene.info["joint_refinement"]}
+                       if "joint_refinement" in scene.info else {})},
         "refine": {"method": result.refine,
                    "region": options.refine_region, "steps": options.refine_steps},
     }

@@ -22,6 +22,14 @@ def intrinsics(focal: float, width: int, height: int) -> np.ndarray:
     )
 
 
+def focal_scaled(K: np.ndarray, factor: float) -> np.ndarray:
+    """A copy of ``K`` ``(3, 3)`` with its focal lengths (and skew) times ``factor``, the
+    principal point kept: the same camera zoomed (:meth:`Camera.scaled` resizes the image)."""
+    scaled = K.copy()
+    scaled[:2, :2] *= factor
+    return scaled
+
+
 def pixel_rays(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
     """``(N, 3)`` rays ``K^-1 (u, v, 1)`` of pixels ``pix`` ``(N, 2)`` (at unit depth)."""
     return np.hstack([pix, np.ones((len(pix), 1))]) @ np.linalg.inv(K).T

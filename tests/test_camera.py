@@ -1,6 +1,7 @@
 import numpy as np
 
-from pis3r.camera import Camera, fundamental_matrix, intrinsics, sampson_distance, sampson_homogeneous, sampson_jacobian
+from pis3r.camera import (Camera, focal_scaled, fundamental_matrix, intrinsics, sampson_distance, sampson_homogeneous,
+                          sampson_jacobian)
 from tests.analytic import rotation_y
 
 
@@ -73,3 +74,11 @@ def test_dict_round_trip():
     back = Camera.from_dict(cam.to_dict())
     np.testing.assert_array_equal(back.K, cam.K)
     np.testing.assert_array_equal(back.t, cam.t)
+
+
+def test_focal_scaled_zooms_and_keeps_the_principal_point_and_the_input():
+    K = np.array([[800.0, 2.0, 319.5], [0.0, 790.0, 239.5], [0.0, 0.0, 1.0]])
+    original = K.copy()
+    zoomed = focal_scaled(K, 1.5)
+    np.testing.assert_array_equal(zoomed, [[1200.0, 3.0, 319.5], [0.0, 1185.0, 239.5], [0.0, 0.0, 1.0]])
+    np.testing.assert_array_equal(K, original)

@@ -12,8 +12,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics, pixel_rays
+from pis3r.camera import focal_scaled, intrinsics, pixel_rays
 from pis3r.features import Matches
+from pis3r.reconstruct.geometry import pixel_scale
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 
 # Prior focal when neither the user, EXIF nor the two views give one: 1.2 x the longest
@@ -120,14 +121,12 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     u_b = rays_b / np.linalg.norm(rays_b, axis=1, keepdims=True)
     U, _, Vt = np.linalg.svd(u_b.T @ u_a)
     R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-    scale = float(np.hypot(*K_b[:2, 2] * 2) / np.hypot(1024, 768))
+    scale = pixel_scale(*K_b[:2, 2] * 2)
 
     def unpack(p):
-        Ka, Kb = K_a.copy(), K_b.copy()
-        if refine_focal:
-            Ka[:2, :2] *= np.exp(p[3])
-            Kb[:2, :2] *= np.exp(p[3])
-        return cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R0, Ka, Kb
+        factor = np.exp(p[3]) if refine_focal else 1.0
+        R = cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R0
+        return R, focal_scaled(K_a, factor), focal_scaled(K_b, factor)
 
     def transfer(p):
         R, Ka, Kb = unpack(p)

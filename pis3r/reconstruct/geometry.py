@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics, pixel_rays, sampson_distance, sampson_homogeneous, sampson_jacobian
+from pis3r.camera import focal_scaled, intrinsics, pixel_rays, sampson_distance, sampson_homogeneous, sampson_jacobian
 from pis3r.features import Matches
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
@@ -125,7 +125,7 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     put back on the right side of the twisted-pair ambiguity (points in front of both
     cameras), which the Sampson error cannot see.
     """
-    scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
+    scale = pixel_scale(*K_a[:2, 2] * 2)
     t = t / np.linalg.norm(t)
     refine_focal = focal_prior is not None
 
@@ -180,11 +180,8 @@ def _pose_parameters(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.nda
     R = cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R0
     theta, phi = p[3], p[4]
     t = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
-    Ka, Kb = K_a.copy(), K_b.copy()
-    if refine_focal:
-        Ka[:2, :2] *= np.exp(p[5])
-        Kb[:2, :2] *= np.exp(p[5])
-    return R, t, Ka, Kb
+    factor = np.exp(p[5]) if refine_focal else 1.0
+    return R, t, focal_scaled(K_a, factor), focal_scaled(K_b, factor)
 
 
 def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
@@ -223,7 +220,7 @@ def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
 
 def epipolar_cost(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> float:
     """The robust Sampson cost (as :func:`refine_pose`'s) of matches under the pose ``R``, ``t``."""
-    scale = float(np.hypot(*K_a[:2, 2] * 2) / np.hypot(1024, 768))
+    scale = pixel_scale(*K_a[:2, 2] * 2)
     F = _fundamental(R, t / max(np.linalg.norm(t), 1e-12), K_a, K_b)
     return _cauchy(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
 

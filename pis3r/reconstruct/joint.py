@@ -26,8 +26,10 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import pixel_rays
+from pis3r.camera import focal_scaled, pixel_rays
+from pis3r.reconstruct.geometry import pixel_scale
 from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
+from pis3r.reconstruct.robust_lsq import robust_cost
 
 # Cauchy scale of the reprojection error (px at 1024 x 768; scaled with the image diagonal).
 REPROJECTION_SCALE_PX = 1.0
@@ -84,7 +86,6 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool) -> JointF
     count = np.bincount(obs_point[keep], minlength=len(ref_points))
     seen = count > 0
     renumber = np.cumsum(seen) - 1
-    keep &= seen[obs_point]
     slot = {k: n for n, k in enumerate(joined)}
     problem = _Problem(K_ref, np.stack([pairs[views[k]].K_b for k in joined]), ref_points[seen],
                        np.array([slot[k] for k in obs_view[keep]], np.int64), renumber[obs_point[keep]], obs_xy[keep],
@@ -105,17 +106,10 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool) -> JointF
             # The views together determine the focal the pair left free.
             source += f"; refined over {len(joined) + 1} views jointly"
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
-        refined[j] = replace(pairs[j], R=fitted.R[n], t=t / np.linalg.norm(t), K_a=_scaled_focal(pairs[j].K_a, factor),
-                             K_b=_scaled_focal(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
+        refined[j] = replace(pairs[j], R=fitted.R[n], t=t / np.linalg.norm(t), K_a=focal_scaled(pairs[j].K_a, factor),
+                             K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
     return JointFit(refined, len(joined), factor, before, problem.median_error(fitted), iterations, int(seen.sum()),
                     int(keep.sum()))
-
-
-def _scaled_focal(K: np.ndarray, factor: float) -> np.ndarray:
-    """``K`` ``(3, 3)`` with its focal lengths (and skew) times ``factor``, the principal point kept."""
-    scaled = K.copy()
-    scaled[:2, :2] *= factor
-    return scaled
 
 
 def reference_tracks(inliers: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -189,7 +183,8 @@ class _Problem:
         self.view = view
         self.K = np.concatenate([np.broadcast_to(K_ref, (P, 3, 3)), K[view]])
         self.observed = np.concatenate([ref_xy, xy])
-        self.scale = REPROJECTION_SCALE_PX * float(np.hypot(*K_ref[:2, 2] * 2) / np.hypot(1024, 768))
+        # The image's size from its principal point, as the pair fits scale theirs.
+        self.scale = REPROJECTION_SCALE_PX * pixel_scale(*K_ref[:2, 2] * 2)
         self.unknowns = 6 * self.num_views + (1 if refine_focal else 0)
         spare = self.unknowns
         self.columns = np.concatenate([np.full((P, 6), spare), 6 * view[:, None] + np.arange(6)])
@@ -234,8 +229,7 @@ class _Problem:
         return residual, (d_camera @ rotation, np.concatenate(d_cam, 2))
 
     def _cost(self, residual: np.ndarray) -> float:
-        squared = np.sum(residual * residual, axis=1) / self.scale**2
-        return 0.5 * self.scale**2 * float(np.sum(np.log1p(squared)))
+        return robust_cost(np.linalg.norm(residual, axis=1), "cauchy", self.scale)
 
     def median_error(self, state: _State) -> float:
         """Median reprojection error (px) in the views (the reference's own are near 0)."""
@@ -271,6 +265,7 @@ class _Problem:
         ``(P, 3)``; the camera unknowns' ``U`` and ``g_c`` (with the spare column); and each
         observation's coupling ``W`` ``(N, 6 or 7, 3)`` of its camera unknowns to its point."""
         d_point, d_cam = jacobians
+        # The Cauchy loss's slope rho' at each observation's squared scaled error.
         weight = 1.0 / (1.0 + np.sum(residual * residual, axis=1) / self.scale**2)
         weighted_point = d_point * weight[:, None, None]
         weighted_residual = residual * weight[:, None]

@@ -31,7 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pis3r.camera import rotation_angle_deg
+from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
@@ -375,10 +375,8 @@ def _focal_evidence(inliers: Matches, fit: geometry.PoseFit) -> float:
     way (pose re-fitted): the smaller rise of the robust Sampson cost."""
     rises = []
     for factor in (FOCAL_PROBE_FACTOR, 1.0 / FOCAL_PROBE_FACTOR):
-        K_a, K_b = fit.K_a.copy(), fit.K_b.copy()
-        K_a[:2, :2] *= factor
-        K_b[:2, :2] *= factor
-        probe = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+        probe = geometry.refine_pose(inliers, fit.R, fit.t, focal_scaled(fit.K_a, factor),
+                                     focal_scaled(fit.K_b, factor))
         rises.append(probe.cost - fit.cost)
     return float(min(rises))
 
