@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 import pis3r
 from pis3r.features import Matches
-from pis3r.reconstruct.joint import refine_jointly, reference_tracks
+from pis3r.reconstruct.joint import refine_jointly
+from pis3r.reconstruct.tracks import match_tracks
 from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
 
 from .conftest import REAL, needs_real_data
@@ -43,13 +44,14 @@ def _pair(K_used: np.ndarray, R: np.ndarray, t: np.ndarray, matches: Matches) ->
 
 def _scene(count: int, focal_used: float, noise_px: float, seed: int = 0, rotation_error_deg: float = 2.0):
     """Pairs of a turntable scene as a pairwise estimate leaves them: the focal wrong, each
-    rotation ``rotation_error_deg`` off, each translation direction a little off; and the GT."""
+    rotation ``rotation_error_deg`` off, each translation direction a little off; the GT
+    cameras; and the points each view sees."""
     rng = np.random.default_rng(seed)
     X = rng.uniform([-1.0, -1.0, 4.0], [1.0, 1.0, 6.0], (600, 3))
     cameras = _turntable(count)
     K = _K(FOCAL)
     ref_xy = _project(K, np.eye(3), np.zeros(3), X)
-    pairs = {}
+    pairs, points = {}, {}
     for j, (R, t) in enumerate(cameras[1:], start=1):
         # Each view sees its own random two thirds of the points.
         seen = rng.random(len(X)) < 0.67
@@ -57,7 +59,8 @@ def _scene(count: int, focal_used: float, noise_px: float, seed: int = 0, rotati
         wrong = Rotation.from_rotvec(np.radians(rotation_error_deg) * rng.normal(size=3) / math.sqrt(3)).as_matrix()
         pairs[j] = _pair(_K(focal_used), wrong @ R, t + rng.normal(0.0, 0.02, 3) * np.linalg.norm(t),
                          Matches(ref_xy[seen], xy))
-    return pairs, cameras
+        points[j] = X[seen]
+    return pairs, cameras, points
 
 
 def _errors(pairs, cameras):
@@ -73,7 +76,7 @@ def test_the_poses_and_a_wrong_focal_are_recovered_together():
     """Half the true focal (what one narrow pair self-calibrates on the temple) and rotations
     2 deg off: the views together give the focal within half a percent and the poses within
     hundredths of a degree."""
-    pairs, cameras = _scene(5, FOCAL / 2, noise_px=0.3)
+    pairs, cameras, _ = _scene(5, FOCAL / 2, noise_px=0.3)
     assert _errors(pairs, cameras)[0] > 1.0
     pairs[1] = replace(pairs[1], warnings=(f"{UNDETERMINED_FOCAL} (...); assumed 750 px", "few inliers"))
     fit = refine_jointly(pairs, refine_focal=True)
@@ -90,10 +93,14 @@ def test_the_poses_and_a_wrong_focal_are_recovered_together():
     assert fit.after_px < 0.5 < fit.before_px
     # The pair's warning that it leaves the focal free no longer holds; others do.
     assert fit.pairs[1].warnings == ("few inliers",)
+    # Refined again (with views chained to these), a pair says so once.
+    again = refine_jointly(fit.pairs, refine_focal=True)
+    assert again.focal_factor == pytest.approx(1.0, abs=1e-3)
+    assert again.pairs[2].focal_source == "prior; refined over 5 views jointly"
 
 
 def test_a_known_focal_is_kept():
-    pairs, cameras = _scene(4, FOCAL, noise_px=0.3, seed=1)
+    pairs, cameras, _ = _scene(4, FOCAL, noise_px=0.3, seed=1)
     fit = refine_jointly(pairs, refine_focal=False)
     assert fit.focal_factor == 1.0 and all(pair.K_a[0, 0] == FOCAL for pair in fit.pairs.values())
     assert all(pair.focal_source == "prior" for pair in fit.pairs.values())
@@ -104,7 +111,7 @@ def test_a_known_focal_is_kept():
 
 
 def test_a_view_that_shares_no_point_with_the_others_keeps_its_own_pair():
-    pairs, _ = _scene(4, FOCAL, noise_px=0.3, seed=2)
+    pairs, *_ = _scene(4, FOCAL, noise_px=0.3, seed=2)
     lonely = pairs[3]
     # Its reference points are none of the others'.
     pairs[3] = _pair(lonely.K_a, lonely.R, lonely.t, Matches(lonely.inliers.pts_a + 0.25, lonely.inliers.pts_b))
@@ -113,15 +120,48 @@ def test_a_view_that_shares_no_point_with_the_others_keeps_its_own_pair():
     assert refine_jointly({1: pairs[1], 3: pairs[3]}, refine_focal=True) is None
 
 
-def test_tracks_are_the_reference_s_distinct_points():
-    a = Matches(np.array([[1.0, 2.0], [3.0, 4.0], [1.0, 2.0]]), np.array([[5.0, 5.0], [6.0, 6.0], [7.0, 7.0]]))
+def test_tracks_link_the_matches_through_the_keypoints_they_share():
+    """Two views matched with the reference and a third chained to the second: a keypoint of
+    the reference seen twice, and one of the second view matched onwards, are one track each."""
+    a = Matches(np.array([[1.0, 2.0], [3.0, 4.0]]), np.array([[5.0, 5.0], [6.0, 6.0]]))
     b = Matches(np.array([[3.0, 4.0], [8.0, 9.0]]), np.array([[1.0, 1.0], [2.0, 2.0]]))
-    points, view, point, xy = reference_tracks([a, b])
-    np.testing.assert_array_equal(points, [[1.0, 2.0], [3.0, 4.0], [8.0, 9.0]])
-    # The point matched twice in view 0 keeps its first match.
-    np.testing.assert_array_equal(view, [0, 0, 1, 1])
-    np.testing.assert_array_equal(point, [0, 1, 1, 2])
-    np.testing.assert_array_equal(xy, [[5.0, 5.0], [6.0, 6.0], [1.0, 1.0], [2.0, 2.0]])
+    c = Matches(np.array([[2.0, 2.0], [7.0, 7.0]]), np.array([[0.0, 0.0], [9.0, 9.0]]))
+    ends_a, ends_b, camera, track, xy = match_tracks([(0, 1, a), (0, 2, b), (2, 3, c)])
+    np.testing.assert_array_equal(camera, [0, 0, 0, 1, 1, 2, 2, 2, 3, 3])
+    np.testing.assert_array_equal(xy[ends_a], np.concatenate([a.pts_a, b.pts_a, c.pts_a]))
+    np.testing.assert_array_equal(xy[ends_b], np.concatenate([a.pts_b, b.pts_b, c.pts_b]))
+    np.testing.assert_array_equal(camera[ends_b], [1, 1, 2, 2, 3, 3])
+    # (3, 4) in the reference is seen by views 1 and 2; (8, 9) by view 2 and, through it, view 3.
+    assert track[ends_a[1]] == track[ends_a[2]] == track[ends_b[1]] == track[ends_b[2]]
+    assert track[ends_a[3]] == track[ends_b[3]] == track[ends_a[4]] == track[ends_b[4]]
+    assert len(np.unique(track)) == 4
+
+
+def test_a_view_chained_to_another_is_refined_with_it():
+    """The last view of a turntable shares no point with the reference: chained to the view
+    before it, it is placed and refined through it (its pose relative to that view's)."""
+    pairs, cameras, seen = _scene(4, FOCAL / 2, noise_px=0.3, seed=3)
+    rng = np.random.default_rng(3)
+    X = rng.uniform([-1.0, -1.0, 4.0], [1.0, 1.0, 6.0], (400, 3))
+    (R_a, t_a), (R_b, t_b) = cameras[3], _turntable(5)[4]
+    R_rel, t_rel = R_b @ R_a.T, t_b - R_b @ R_a.T @ t_a
+    K = _K(FOCAL)
+    # The anchor's keypoints of the chain are its keypoints with the reference, where both see them.
+    shared = pairs[3].inliers
+    xy_b = _project(K, R_b, t_b, seen[3])
+    chain = Matches(np.concatenate([shared.pts_b, _project(K, R_a, t_a, X)]),
+                    np.concatenate([xy_b, _project(K, R_b, t_b, X)]) + rng.normal(0.0, 0.3, (len(shared) + len(X), 2)))
+    wrong = Rotation.from_rotvec(np.radians([1.5, -1.0, 0.5])).as_matrix()
+    pairs[4] = _pair(_K(FOCAL / 2), wrong @ R_rel, t_rel, chain)
+    fit = refine_jointly(pairs, refine_focal=True, anchors={4: 3})
+    assert fit is not None and fit.views == 4
+    assert fit.focal_factor * FOCAL / 2 == pytest.approx(FOCAL, rel=0.01)
+    chained = fit.pairs[4]
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(chained.R @ R_rel.T).as_rotvec())) < 0.1
+    assert math.degrees(math.acos(np.clip(chained.t @ t_rel / np.linalg.norm(t_rel), -1, 1))) < 0.5
+    # Without its anchor the chained view stays out.
+    alone = refine_jointly({j: pairs[j] for j in (1, 2, 4)}, refine_focal=True, anchors={4: 3})
+    assert alone.views == 2 and alone.pairs[4] is pairs[4]
 
 
 @needs_real_data
@@ -139,5 +179,25 @@ def test_three_temple_views_fix_the_focal_one_pair_cannot():
     assert scene.indices == (0, 1, 2) and fit["views"] == 2 and fit["median_reprojection_px"][1] < 0.5
     assert scene.focal == pytest.approx(gt[13].K[0, 0], rel=0.03)
     for view, camera in zip((14, 15), (scene.views[1].camera, scene.views[2].camera)):
+        R_gt = gt[view].R @ gt[13].R.T
+        assert np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ R_gt.T).as_rotvec())) < 1.0
+
+
+@needs_real_data
+def test_a_temple_view_chained_through_another_is_refined_with_it():
+    """Temple views 13, 15 and 19: 19 shares too few matches with 13 and is chained through 15.
+    One pair fixes no focal (about half the GT's, the poses 15-22 deg off); the chained pair
+    joins the fit and, with it, does."""
+    from pis3r.eval.cases import calibrated_views
+
+    folder = REAL / "middlebury-templeRing"
+    gt = {}
+    for view in (15, 19):
+        _, (gt[13], gt[view]) = calibrated_views(folder, (13, view))
+    result = pis3r.stitch([folder / "images" / f"templeR{v:04d}.png" for v in (13, 15, 19)], backend="classical")
+    scene, fit = result.scene, result.report["details"]["joint_refinement"]
+    assert scene.indices == (0, 1, 2) and fit["views"] == 2
+    assert scene.focal == pytest.approx(gt[13].K[0, 0], rel=0.03)
+    for view, camera in zip((15, 19), (scene.views[1].camera, scene.views[2].camera)):
         R_gt = gt[view].R @ gt[13].R.T
         assert np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ R_gt.T).as_rotvec())) < 1.0

@@ -7,8 +7,9 @@ Works offline on any machine. For the reference (view 0) and every other view:
    MAGSAC++ fundamental matrix; the homography model for a rotation or a plane, else 3-D;
    focal from ``--focal``, EXIF or self-calibration; the relative pose the epipolar
    geometry supports.
-2. With three or more photos, the poses and focal of the 3-D pairs refined together
-   (:mod:`pis3r.reconstruct.joint`: bundle adjustment over the reference's tracks).
+2. A photo the reference does not place is paired with the photo it shares most with (a
+   chain of any length); with three or more photos, the poses and focal of the 3-D pairs
+   refined together (:mod:`pis3r.reconstruct.joint`: bundle adjustment over all their tracks).
 3. Depth (:mod:`pis3r.reconstruct.views`): the homography model's is constant (rotation) or
    its plane; the 3-D model's comes from DIS flow after a homography pre-warp, forward-backward,
    epipolar and triangulation-angle checks, sparse triangulated matches as extra seeds; then
@@ -67,13 +68,12 @@ class ClassicalReconstructor:
 
     def reconstruct(self, photos: list[Photo]) -> Scene:
         """Every photo registered to ``photos[0]``, directly or, when it does not overlap
-        it or too few of its SIFT matches with it agree, through a chain of registered photos
-        (:meth:`_attach_through_others`; ASIFT with ``photos[0]`` only where none places it); with
-        three or more photos, one that overlaps no registered photo is dropped
-        (``Scene.dropped``) instead of failing the rest, and the poses and focal of the photos
-        registered to ``photos[0]`` by SIFT are refined together
-        (:func:`pis3r.reconstruct.joint.refine_jointly`) before their depth is measured. The
-        model, parallax and match counts reported are the first registered pair's."""
+        it or too few of its SIFT matches with it agree, through a chain of paired photos
+        (:meth:`_chain`; ASIFT with ``photos[0]`` only where none places it); with three or
+        more photos, one that overlaps no paired photo is dropped (``Scene.dropped``) instead
+        of failing the rest, and the poses and focal of the 3-D pairs, chained or not, are
+        refined together (:func:`pis3r.reconstruct.joint.refine_jointly`) before any depth is
+        measured. The model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = self.features(photos)
@@ -127,6 +127,7 @@ class ClassicalReconstructor:
                         failures[j] = str(pair)
                     else:
                         pairs[j] = pair
+                        failures.pop(j, None)
 
         def view_with_reference(j: int) -> View | Pis3rError:
             try:
@@ -146,9 +147,21 @@ class ClassicalReconstructor:
                         failures.pop(j, None)
 
         pair_all(later, self.options.detector == "auto")
-        joint = self._refine_jointly(pairs) if len(photos) > 2 else None
+        joint = self._refine_jointly(pairs, {}, not self.options.focal) if len(photos) > 2 else None
+        # A photo the reference does not place is chained to the photo it shares most with (at
+        # the focal the views refined together, which one pair may leave far off).
+        anchors: dict[int, int] = {}
+        self._chain(photos, features, pairs, anchors, failures)
+        if weak & failures.keys():
+            retried = sorted(weak & failures.keys())
+            pair_all(retried, False)
+            self._chain(photos, features, pairs, anchors, failures)
+        if any(pairs[j].model == "3d" for j in anchors):
+            # The chained pairs refined with the others.
+            chained = self._refine_jointly(pairs, anchors, not self.options.focal)
+            joint = joint.followed_by(chained) if joint and chained else joint or chained
         # The first pair whose depth can be measured fixes the scene's frame and scale.
-        for j in list(pairs):
+        for j in [j for j in pairs if j not in anchors]:
             try:
                 view_ref, view_j = self._views(ref, photos[j], pairs[j], None)
             except Pis3rError as exc:
@@ -161,15 +174,9 @@ class ClassicalReconstructor:
             break
         if not registered:
             raise _unregistered(photos, failures)
-        place_all([j for j in pairs if j not in registered])
+        place_all([j for j in pairs if j not in registered and j not in anchors])
+        self._place_chained(photos, pairs, anchors, registered, failures)
         warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
-        warnings += self._attach_through_others(photos, features, registered, failures)
-        if weak & failures.keys():
-            retried = sorted(weak & failures.keys())
-            pair_all(retried, False)
-            place_all([j for j in retried if j in pairs])
-            warnings += [line for j in retried if j in registered for line in pairs[j].warnings]
-            warnings += self._attach_through_others(photos, features, registered, failures)
         for j in failures:
             failures[j] += "; nor does it overlap any other registered image"
         indices = sorted(registered)
@@ -185,49 +192,59 @@ class ClassicalReconstructor:
                   **({"joint_refinement": joint.to_dict()} if joint else {})},
         )
 
-    def _refine_jointly(self, pairs: dict[int, PairGeometry]) -> JointFit | None:
-        """The 3-D ``pairs`` (view index -> geometry with the reference) refined together, in
-        place, the focal too unless it is the user's; the fit, or ``None`` where fewer than two
-        can be."""
-        solid = {j: pair for j, pair in pairs.items() if pair.model == "3d"}
-        fit = refine_jointly(solid, refine_focal=not self.options.focal) if len(solid) >= 2 else None
+    @staticmethod
+    def _refine_jointly(pairs: dict[int, PairGeometry], anchors: dict[int, int], refine_focal: bool) -> JointFit | None:
+        """The 3-D ``pairs`` (view index -> geometry with its anchor: ``anchors``' view or the
+        reference) refined together, in place, the focal too if ``refine_focal``; the fit, or
+        ``None`` where fewer than two can be."""
+        fit = refine_jointly(pairs, refine_focal, anchors)
         if fit is not None:
             pairs.update(fit.pairs)
         return fit
 
-    def _attach_through_others(self, photos: list[Photo], features: list[PhotoFeatures],
-                               registered: dict[int, View], failures: dict[int, str]) -> list[str]:
-        """Register each photo the reference could not (``failures``, index -> reason) to the
-        registered photo it shares the most matches with, trying the ``CHAIN_ANCHORS`` best;
-        its pose is composed with that photo's and its scale tied through that photo's depth
-        (:meth:`pis3r.scene.View.in_world_of`). Repeated while photos attach, so a chain of any
-        length reaches the reference. ``registered`` and ``failures`` are updated in place;
-        returns the warnings of the pairs that attached."""
-        warnings, attached = [], True
+    def _chain(self, photos: list[Photo], features: list[PhotoFeatures], pairs: dict[int, PairGeometry],
+               anchors: dict[int, int], failures: dict[int, str]) -> None:
+        """Pair each photo the reference could not (``failures``, index -> reason) with the photo
+        of ``pairs`` it shares the most matches with, trying the ``CHAIN_ANCHORS`` best; the pair
+        joins ``pairs`` and its anchor ``anchors`` (view -> anchor). Repeated while photos attach,
+        so a chain of any length reaches the reference. All three dicts are updated in place."""
+        attached = True
         while failures and attached:
             attached = False
             for j in sorted(failures):
-                # Match counts are memoised: a later round or call only adds newly registered photos.
+                # Match counts are memoised: a later round or call only adds newly paired photos.
                 # Each count's descriptor product is split over both cores (features._similarity).
-                count_keys = {i: ("shared", id(photos[i]), id(photos[j])) for i in registered if i != 0}
+                count_keys = {i: ("shared", id(photos[i]), id(photos[j])) for i in pairs}
                 strongest = features[j].sift.strongest(CHAIN_COUNT_FEATURES)
                 for i in [i for i, key in count_keys.items() if key not in self.memo]:
                     self.memo[count_keys[i]] = len(match(features[i].sift.strongest(CHAIN_COUNT_FEATURES), strongest))
-                anchors = sorted(count_keys, key=lambda i: -self.memo[count_keys[i]])
-                for i in anchors[:CHAIN_ANCHORS]:
-                    anchor = registered[i]
+                for i in sorted(count_keys, key=lambda i: -self.memo[count_keys[i]])[:CHAIN_ANCHORS]:
                     try:
-                        pair = self.pair_geometry(features[i], features[j], float(anchor.camera.K[0, 0]),
-                                                  f"chained through {photos[i].name}", True, True)
-                        _, view_j = self._views(photos[i], photos[j], pair, anchor.depth)
+                        pairs[j] = self.pair_geometry(features[i], features[j], float(pairs[i].K_b[0, 0]),
+                                                      f"chained through {photos[i].name}", True, True)
                     except Pis3rError:
                         continue
-                    registered[j] = view_j.in_world_of(anchor.camera)
-                    warnings += pair.warnings
+                    anchors[j] = i
                     del failures[j]
                     attached = True
                     break
-        return warnings
+
+    def _place_chained(self, photos: list[Photo], pairs: dict[int, PairGeometry], anchors: dict[int, int],
+                       registered: dict[int, View], failures: dict[int, str]) -> None:
+        """The chained photos' views (``anchors``: view -> anchor, each after its anchor), their
+        scale tied through the anchor's depth and their pose composed with the anchor's
+        (:meth:`pis3r.scene.View.in_world_of`); added to ``registered``, or to ``failures``
+        with the reason."""
+        for j, i in anchors.items():
+            if i not in registered:
+                failures[j] = f"{photos[i].name}, through which it was chained, could not be placed"
+                continue
+            try:
+                _, view_j = self._views(photos[i], photos[j], pairs[j], registered[i].depth)
+            except Pis3rError as exc:
+                failures[j] = str(exc)
+                continue
+            registered[j] = view_j.in_world_of(registered[i].camera)
 
     def detector(self, ref: Photo, other: Photo) -> str:
         """``SIFT`` or ``ASIFT``: the features that match ``ref`` and ``other``; both are

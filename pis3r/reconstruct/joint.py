@@ -1,21 +1,24 @@
-"""Joint refinement of the views registered to the reference: bundle adjustment over every
-pair's epipolar inliers at once.
+"""Joint refinement of the registered views: bundle adjustment over every pair's epipolar
+inliers at once.
 
 Each pair's pose comes from its own matches (:mod:`pis3r.reconstruct.pairs`), and a focal
 self-calibrated from one pair is poorly determined where the field of view is narrow (the
-Middlebury temple: half the true focal, poses 4-14 deg off). Many views fix both: a point of
-the reference seen by several views ties their poses, scales and the focal together.
+Middlebury temple: half the true focal, poses 4-14 deg off). Many views fix both: a point
+seen by several views ties their poses, scales and the focal together.
 
-The tracks are the reference's matched points (one track per distinct point of the reference,
-observed in every view it was matched in): no view is matched with another. The unknowns are
-each view's rotation and translation (the reference is the world frame), the points in the
-reference's frame and, where the focal was self-calibrated, one log-scale of every focal (the
-pairs keep the views' focal ratios, as :func:`pis3r.reconstruct.geometry.refine_pose` does).
-The cost is the robust (Cauchy) reprojection error in pixels, minimised by Levenberg-Marquardt
-with the points eliminated (Schur complement: Triggs et al., "Bundle adjustment - a modern
-synthesis", 2000), the robust loss by reweighting each step. The scale is free: what comes out
-is each pair's rotation, translation direction and focals; the views' depths are tied to one
-scale afterwards, as without this refinement.
+A pair joins a view to its anchor: the reference, or a view the reference does not overlap
+enough is chained to (:mod:`pis3r.reconstruct.classical`). The tracks are the pairs' matches
+linked through the pixels they share (one track per connected set of matched keypoints:
+:mod:`pis3r.reconstruct.tracks`, which also places each view to start from): no view is
+matched anew. The unknowns are each view's rotation and translation (the reference is
+the world frame), the points in the reference's frame and, where the focal was
+self-calibrated, one log-scale of every focal (the pairs keep the views' focal ratios, as
+:func:`pis3r.reconstruct.geometry.refine_pose` does). The cost is the robust (Cauchy)
+reprojection error in pixels, minimised by Levenberg-Marquardt with the points eliminated
+(Schur complement: Triggs et al., "Bundle adjustment - a modern synthesis", 2000), the robust
+loss by reweighting each step. The scale is free: what comes out is each pair's rotation,
+translation direction and focals; the views' depths are tied to one scale afterwards, as
+without this refinement.
 """
 
 from __future__ import annotations
@@ -26,10 +29,11 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import focal_scaled, pixel_rays
+from pis3r.camera import focal_scaled
 from pis3r.reconstruct.geometry import pixel_scale
 from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
 from pis3r.reconstruct.robust_lsq import robust_cost
+from pis3r.reconstruct.tracks import joint_start
 
 # Cauchy scale of the reprojection error (px at 1024 x 768; scaled with the image diagonal).
 REPROJECTION_SCALE_PX = 1.0
@@ -40,18 +44,16 @@ COST_TOLERANCE = 1e-5
 DAMPING_START, DAMPING_UP, DAMPING_DOWN = 1e-4, 10.0, 0.3
 # A step the cost does not follow even this damped ends the fit.
 MAX_DAMPING = 1e8
-# A view joins the fit through at least this many points it shares with views already in it.
-MIN_SHARED_POINTS = 20
-# Observations nearer than this (depth along the reference's ray, relative) to the reference
-# camera's plane, or behind a camera, are left out of the start.
-MIN_DEPTH = 1e-6
+# What a refined pair's focal source says (once, however many fits refined it).
+JOINTLY = "; refined over"
 
 
 @dataclass(frozen=True)
 class JointFit:
-    """The pairs after joint refinement (``pairs``: view index -> :class:`PairGeometry`; the
-    views left out keep their own), the focal's factor, the median reprojection error (px)
-    ``before`` and ``after``, and the fit's size (``views`` fitted besides the reference)."""
+    """The pairs after joint refinement (``pairs``: view index -> :class:`PairGeometry` with its
+    anchor; the views left out keep their own), the focal's factor, the median reprojection
+    error (px) ``before`` and ``after``, and the fit's size (``views`` fitted besides the
+    reference)."""
 
     pairs: dict[int, PairGeometry]
     views: int
@@ -62,100 +64,49 @@ class JointFit:
     points: int
     observations: int
 
+    def followed_by(self, later: JointFit) -> JointFit:
+        """This fit and a ``later`` one from where it ended, as one: the later's pairs and size,
+        both's iterations, the product of their focal factors, the error before this one."""
+        return replace(later, focal_factor=self.focal_factor * later.focal_factor, before_px=self.before_px,
+                       iterations=self.iterations + later.iterations)
+
     def to_dict(self) -> dict:
         return {"views": self.views, "points": self.points, "observations": self.observations,
                 "iterations": self.iterations, "focal_factor": round(self.focal_factor, 5),
                 "median_reprojection_px": [round(self.before_px, 3), round(self.after_px, 3)]}
 
 
-def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool) -> JointFit | None:
-    """Bundle adjustment (module docstring) of the 3-D ``pairs`` (view index -> its geometry
-    with the reference, all with the same ``K_a``); ``refine_focal``: the focal was
-    self-calibrated, so it is refined too. ``None`` where fewer than two views share enough
-    points to be fitted together."""
-    views = sorted(pairs)
-    K_ref = pairs[views[0]].K_a
-    ref_points, obs_view, obs_point, obs_xy = reference_tracks([pairs[j].inliers for j in views])
-    scales, depths = _start_scales(pairs, views, ref_points, obs_view, obs_point, obs_xy)
-    joined = [k for k in range(len(views)) if scales[k] > 0]
-    if len(joined) < 2:
+def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
+                   anchors: dict[int, int] | None = None) -> JointFit | None:
+    """Bundle adjustment (module docstring) of the 3-D ``pairs`` from
+    :func:`pis3r.reconstruct.tracks.joint_start` (the same arguments); ``refine_focal``: the focal was self-calibrated, so it is refined too. The
+    fitted pairs' pose is relative to their anchor's, as it was. ``None`` where fewer than two
+    views share enough points to be fitted together."""
+    anchors = anchors or {}
+    start = joint_start(pairs, anchors)
+    if start is None:
         return None
-    keep = np.isin(obs_view, joined) & (depths > 0)
-    # A point enters with its mean inverse depth over the views that measured it.
-    inverse = np.bincount(obs_point[keep], 1.0 / (scales[obs_view[keep]] * depths[keep]), len(ref_points))
-    count = np.bincount(obs_point[keep], minlength=len(ref_points))
-    seen = count > 0
-    renumber = np.cumsum(seen) - 1
-    slot = {k: n for n, k in enumerate(joined)}
-    problem = _Problem(K_ref, np.stack([pairs[views[k]].K_b for k in joined]), ref_points[seen],
-                       np.array([slot[k] for k in obs_view[keep]], np.int64), renumber[obs_point[keep]], obs_xy[keep],
-                       refine_focal)
-    rays = pixel_rays(ref_points[seen], K_ref)
-    start = _State(np.stack([pairs[views[k]].R for k in joined]),
-                   np.stack([scales[k] * pairs[views[k]].t for k in joined]),
-                   rays * (count[seen] / inverse[seen])[:, None], 0.0)
-    before = problem.median_error(start)
-    fitted, iterations = problem.solve(start)
+    problem = _Problem(start.K, start.camera, start.point, start.xy, refine_focal)
+    begin = _State(start.R, start.t, start.X, 0.0)
+    before = problem.median_error(begin)
+    fitted, iterations = problem.solve(begin)
     factor = math.exp(fitted.log_focal)
+    world = {0: (np.eye(3), np.zeros(3)), **{j: (fitted.R[n], fitted.t[n]) for n, j in enumerate(start.views)}}
     refined = dict(pairs)
-    for n, k in enumerate(joined):
-        j = views[k]
-        t = fitted.t[n]
+    for j in start.views:
+        # The fitted pose relative to the anchor's: x_j = R (R_a X + t_a) + t.
+        R_a, t_a = world[anchors.get(j, 0)]
+        R_rel = world[j][0] @ R_a.T
+        t_rel = world[j][1] - R_rel @ t_a
         source, warnings = pairs[j].focal_source, pairs[j].warnings
         if refine_focal:
             # The views together determine the focal the pair left free.
-            source += f"; refined over {len(joined) + 1} views jointly"
+            source = f"{source.split(JOINTLY)[0]}{JOINTLY} {len(start.views) + 1} views jointly"
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
-        refined[j] = replace(pairs[j], R=fitted.R[n], t=t / np.linalg.norm(t), K_a=focal_scaled(pairs[j].K_a, factor),
+        refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
                              K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
-    return JointFit(refined, len(joined), factor, before, problem.median_error(fitted), iterations, int(seen.sum()),
-                    int(keep.sum()))
-
-
-def reference_tracks(inliers: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The tracks of the pairs' ``inliers`` (:class:`pis3r.features.Matches`, reference first,
-    one per view): ``points`` ``(P, 2)``, the distinct reference pixels, and per observation in
-    a view ``view`` ``(M,)`` (position in ``inliers``), ``point`` ``(M,)`` and ``xy`` ``(M, 2)``;
-    a point matched twice in one view keeps its first match."""
-    ref_xy = np.concatenate([m.pts_a for m in inliers])
-    view = np.repeat(np.arange(len(inliers)), [len(m) for m in inliers])
-    points, point = np.unique(ref_xy, axis=0, return_inverse=True)
-    point = point.ravel()
-    _, first = np.unique(view * len(points) + point, return_index=True)
-    first = np.sort(first)
-    return points, view[first], point[first], np.concatenate([m.pts_b for m in inliers])[first]
-
-
-def _start_scales(pairs, views, ref_points, obs_view, obs_point, obs_xy) -> tuple[np.ndarray, np.ndarray]:
-    """Each view's translation scale relative to the first view's (0 where it shares too few
-    points with the views placed before it), and each observation's depth along its reference
-    ray with the pair's unit translation (0 where undetermined)."""
-    depths = np.zeros(len(obs_view))
-    for k, j in enumerate(views):
-        rows = obs_view == k
-        pair = pairs[j]
-        ray = pixel_rays(ref_points[obs_point[rows]], pair.K_a) @ pair.R.T
-        seen = pixel_rays(obs_xy[rows], pair.K_b)
-        # The depth d along the reference ray that puts d R r + t on the ray b seen in the view.
-        across, offset = np.cross(seen, ray), np.cross(seen, pair.t)
-        d = -np.sum(across * offset, axis=1) / np.maximum(np.sum(across * across, axis=1), 1e-300)
-        depths[rows] = np.where(np.isfinite(d) & (d > MIN_DEPTH), d, 0.0)
-    scales = np.zeros(len(views))
-    scales[0] = 1.0
-    placed = True
-    while placed:
-        placed = False
-        known = np.full(len(ref_points), np.nan)
-        for k in np.flatnonzero(scales > 0):
-            rows = (obs_view == k) & (depths > 0)
-            known[obs_point[rows]] = scales[k] * depths[rows]
-        for k in np.flatnonzero(scales == 0):
-            rows = (obs_view == k) & (depths > 0)
-            shared = np.isfinite(known[obs_point[rows]])
-            if shared.sum() >= MIN_SHARED_POINTS:
-                scales[k] = float(np.median(known[obs_point[rows]][shared] / depths[rows][shared]))
-                placed = True
-    return scales, depths
+    return JointFit(refined, len(start.views), factor, before, problem.median_error(fitted), iterations,
+                    len(start.X), int(np.sum(start.camera > 0)))
 
 
 @dataclass(frozen=True)
@@ -170,26 +121,24 @@ class _State:
 
 
 class _Problem:
-    """The reprojection errors of ``points`` ``(P, 3)`` in the reference (camera ``K_ref``,
-    observed at ``ref_xy`` ``(P, 2)``) and of ``view``'s observations ``(M,)`` of ``point``
-    ``(M,)`` at ``xy`` ``(M, 2)`` in the views (cameras ``K`` ``(V, 3, 3)``). The reference's
-    observations come first; an observation's camera unknowns are its view's pose (none for
-    the reference: a spare column, dropped) and the focal's log-scale if refined."""
+    """The reprojection errors of the observations ``(N,)``: of ``point`` ``(N,)`` (of ``P``)
+    at ``xy`` ``(N, 2)`` in ``camera`` ``(N,)`` (cameras ``K`` ``(V + 1, 3, 3)``, 0 the
+    reference, 1..V the views of the state). An observation's camera unknowns are its view's
+    pose (none for the reference: a spare column, dropped) and the focal's log-scale if refined."""
 
-    def __init__(self, K_ref, K, ref_xy, view, point, xy, refine_focal: bool) -> None:
-        P, M = len(ref_xy), len(view)
-        self.num_points, self.num_views, self.refine_focal = P, len(K), refine_focal
-        self.point = np.concatenate([np.arange(P), point])
-        self.view = view
-        self.K = np.concatenate([np.broadcast_to(K_ref, (P, 3, 3)), K[view]])
-        self.observed = np.concatenate([ref_xy, xy])
+    def __init__(self, K, camera, point, xy, refine_focal: bool) -> None:
+        N = len(camera)
+        self.num_points, self.num_views, self.refine_focal = int(point.max()) + 1, len(K) - 1, refine_focal
+        self.point, self.camera, self.observed = point, camera, xy
+        self.K = K[camera]
         # The image's size from its principal point, as the pair fits scale theirs.
-        self.scale = REPROJECTION_SCALE_PX * pixel_scale(*K_ref[:2, 2] * 2)
+        self.scale = REPROJECTION_SCALE_PX * pixel_scale(*K[0, :2, 2] * 2)
         self.unknowns = 6 * self.num_views + (1 if refine_focal else 0)
         spare = self.unknowns
-        self.columns = np.concatenate([np.full((P, 6), spare), 6 * view[:, None] + np.arange(6)])
+        self.columns = np.where(camera[:, None] > 0, 6 * (camera[:, None] - 1) + np.arange(6), spare)
         if refine_focal:
-            self.columns = np.concatenate([self.columns, np.full((P + M, 1), spare - 1)], 1)
+            self.columns = np.concatenate([self.columns, np.full((N, 1), spare - 1)], 1)
+        P = self.num_points
         # The Schur complement's terms: every pair of observations of one point (each with
         # itself too) among those that reach a camera unknown.
         coupled = np.flatnonzero((self.columns != spare).any(axis=1))
@@ -205,12 +154,11 @@ class _Problem:
         self.block_index = (self.columns[:, :, None] * size + self.columns[:, None, :]).ravel()
 
     def _project(self, state: _State, with_jacobian: bool):
-        """Residuals ``(N, 2)`` of the ``N = P + M`` observations and, ``with_jacobian``, their
+        """Residuals ``(N, 2)`` of the observations and, ``with_jacobian``, their
         derivatives by the point ``(N, 2, 3)`` and by the camera unknowns of :attr:`columns`
         ``(N, 2, 6 or 7)`` (a rotation vector applied on the left, the translation, the focal)."""
-        P = self.num_points
-        rotation = np.concatenate([np.broadcast_to(np.eye(3), (P, 3, 3)), state.R[self.view]])
-        translation = np.concatenate([np.zeros((P, 3)), state.t[self.view]])
+        rotation = np.concatenate([np.eye(3)[None], state.R])[self.camera]
+        translation = np.concatenate([np.zeros((1, 3)), state.t])[self.camera]
         rotated = np.einsum("nij,nj->ni", rotation, state.X[self.point])
         camera_points = rotated + translation
         focal = self.K[:, :2, :2] * math.exp(state.log_focal)
@@ -234,7 +182,7 @@ class _Problem:
     def median_error(self, state: _State) -> float:
         """Median reprojection error (px) in the views (the reference's own are near 0)."""
         residual, _ = self._project(state, False)
-        return float(np.median(np.linalg.norm(residual[self.num_points:], axis=1)))
+        return float(np.median(np.linalg.norm(residual[self.camera > 0], axis=1)))
 
     def solve(self, state: _State) -> tuple[_State, int]:
         """Levenberg-Marquardt from ``state``; returns the fitted state and the iterations run."""
