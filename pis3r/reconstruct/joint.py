@@ -40,8 +40,11 @@ REPROJECTION_SCALE_PX = 1.0
 MAX_ITERATIONS = 100
 # Stop when an accepted step lowers the cost by less than this share of it.
 COST_TOLERANCE = 1e-5
-# Marquardt damping: the start, and the factors after a rejected and an accepted step.
-DAMPING_START, DAMPING_UP, DAMPING_DOWN = 1e-4, 10.0, 0.3
+# Marquardt damping: the start; after a step, Nielsen's rule (H. B. Nielsen, "Damping parameter
+# in Marquardt's method", 1999): an accepted step scales it by max(1/3, 1 - (2 gain - 1)^3), the
+# gain being the cost's fall over the one the linear model predicted; rejected steps in a row by
+# 2, 4, 8, ...
+DAMPING_START = 1e-4
 # A step the cost does not follow even this damped ends the fit.
 MAX_DAMPING = 1e8
 # What a refined pair's focal source says (once, however many fits refined it).
@@ -138,20 +141,12 @@ class _Problem:
         self.columns = np.where(camera[:, None] > 0, 6 * (camera[:, None] - 1) + np.arange(6), spare)
         if refine_focal:
             self.columns = np.concatenate([self.columns, np.full((N, 1), spare - 1)], 1)
-        P = self.num_points
-        # The Schur complement's terms: every pair of observations of one point (each with
-        # itself too) among those that reach a camera unknown.
-        coupled = np.flatnonzero((self.columns != spare).any(axis=1))
-        order = coupled[np.argsort(self.point[coupled], kind="stable")]
-        counts = np.bincount(self.point[order], minlength=P)
-        starts = np.cumsum(counts) - counts
-        repeat = counts[self.point[order]]
-        within = np.arange(repeat.sum()) - np.repeat(np.cumsum(repeat) - repeat, repeat)
-        self.pair_a = np.repeat(order, repeat)
-        self.pair_b = order[np.repeat(starts[self.point[order]], repeat) + within]
         size = spare + 1
-        self.pair_index = (self.columns[self.pair_a][:, :, None] * size + self.columns[self.pair_b][:, None, :]).ravel()
         self.block_index = (self.columns[:, :, None] * size + self.columns[:, None, :]).ravel()
+        # Where each observation's coupling of its camera unknowns to its point adds up in
+        # the dense couplings of all points (size, P, 3).
+        P = self.num_points
+        self.coupling_index = ((self.columns * P + self.point[:, None])[:, :, None] * 3 + np.arange(3)).ravel()
 
     def _project(self, state: _State, with_jacobian: bool):
         """Residuals ``(N, 2)`` of the observations and, ``with_jacobian``, their
@@ -191,16 +186,20 @@ class _Problem:
         damping = DAMPING_START
         for iteration in range(1, MAX_ITERATIONS + 1):
             system = self._normal_equations(residual, jacobians)
+            growth = 2.0
             while True:
-                trial = self._step(state, *self._solve_damped(system, damping))
+                step_c, step_X, predicted = self._solve_damped(system, damping)
+                trial = self._step(state, step_c, step_X)
                 trial_residual, _ = self._project(trial, False)
                 trial_cost = self._cost(trial_residual)
                 if np.isfinite(trial_cost) and trial_cost < cost:
                     break
-                damping *= DAMPING_UP
+                damping *= growth
+                growth *= 2.0
                 if damping > MAX_DAMPING:
                     return state, iteration
-            damping *= DAMPING_DOWN
+            gain = (cost - trial_cost) / max(predicted, 1e-300)
+            damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
             converged = cost - trial_cost < COST_TOLERANCE * cost
             state, cost = trial, trial_cost
             if converged:
@@ -211,7 +210,7 @@ class _Problem:
     def _normal_equations(self, residual, jacobians):
         """The reweighted (Cauchy) Gauss-Newton system: per point ``V`` ``(P, 3, 3)`` and ``g_X``
         ``(P, 3)``; the camera unknowns' ``U`` and ``g_c`` (with the spare column); and each
-        observation's coupling ``W`` ``(N, 6 or 7, 3)`` of its camera unknowns to its point."""
+        point's coupling ``W`` ``(C + 1, P, 3)`` of the camera unknowns to it."""
         d_point, d_cam = jacobians
         # The Cauchy loss's slope rho' at each observation's squared scaled error.
         weight = 1.0 / (1.0 + np.sum(residual * residual, axis=1) / self.scale**2)
@@ -223,25 +222,33 @@ class _Problem:
         cam_t = d_cam.transpose(0, 2, 1)
         U = np.bincount(self.block_index, (cam_t @ (d_cam * weight[:, None, None])).ravel(), size * size)
         g_c = np.bincount(self.columns.ravel(), np.einsum("nki,nk->ni", d_cam, weighted_residual).ravel(), size)
-        return V_blocks, g_X, U.reshape(size, size), g_c, cam_t @ weighted_point
+        W = np.bincount(self.coupling_index, (cam_t @ weighted_point).ravel(), self.num_points * size * 3)
+        return V_blocks, g_X, U.reshape(size, size), g_c, W.reshape(size, self.num_points, 3)
 
-    def _solve_damped(self, system, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    def _solve_damped(self, system, damping: float) -> tuple[np.ndarray, np.ndarray, float]:
         """The damped step ``(camera unknowns (C,), points (P, 3))``: the points eliminated
-        (Schur complement), the cameras' system solved, the points' steps substituted back."""
+        (Schur complement), the cameras' system solved, the points' steps substituted back; and
+        the fall of the cost the reweighted linear model predicts for it."""
         V_blocks, g_X, U, g_c, W = system
         size, C = self.unknowns + 1, self.unknowns
         diagonal = np.einsum("pii->pi", V_blocks)
         V_inverse = np.linalg.inv(V_blocks + (damping * diagonal + 1e-12)[:, :, None] * np.eye(3))
-        Y = W @ V_inverse[self.point]
-        terms = Y[self.pair_a] @ W[self.pair_b].transpose(0, 2, 1)
-        reduced = U - np.bincount(self.pair_index, terms.ravel(), size * size).reshape(size, size)
-        rhs = -g_c + np.bincount(self.columns.ravel(), (Y @ g_X[self.point][:, :, None]).ravel(), size)
+        # Y_p = W_p V_p^-1 for every point, the 3 x 3 product written out (numpy's batched
+        # product is slow on matrices this small).
+        Y = W[:, :, :1] * V_inverse[:, 0] + W[:, :, 1:2] * V_inverse[:, 1] + W[:, :, 2:] * V_inverse[:, 2]
+        # The sum over the points of Y_p W_p^T, as one product.
+        reduced = U - Y.reshape(size, -1) @ W.reshape(size, -1).T
+        rhs = -g_c + Y.reshape(size, -1) @ g_X.ravel()
         reduced, rhs = reduced[:C, :C], rhs[:C]
         reduced[np.diag_indices(C)] += damping * np.diag(U)[:C] + 1e-12
         step = np.append(np.linalg.solve(reduced, rhs), 0.0)
-        back = g_X + _sum_by(self.point, (W.transpose(0, 2, 1) @ step[self.columns][:, :, None])[:, :, 0],
-                             self.num_points)
-        return step[:C], -np.einsum("pij,pj->pi", V_inverse, back)
+        back = g_X + (step @ W.reshape(size, -1)).reshape(-1, 3)
+        step_X = -np.einsum("pij,pj->pi", V_inverse, back)
+        # For (J^T J + damping D) step = -g: the model's fall is step . (damping D step - g) / 2.
+        step_c = step[:C]
+        predicted = step_c @ (damping * np.diag(U)[:C] * step_c - g_c[:C]) \
+            + np.sum(step_X * (damping * diagonal * step_X - g_X))
+        return step_c, step_X, 0.5 * float(predicted)
 
     def _step(self, state: _State, step_c: np.ndarray, step_X: np.ndarray) -> _State:
         pose = step_c[:6 * self.num_views].reshape(-1, 6)
