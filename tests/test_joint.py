@@ -201,3 +201,29 @@ def test_a_temple_view_chained_through_another_is_refined_with_it():
     for view, camera in zip((15, 19), (scene.views[1].camera, scene.views[2].camera)):
         R_gt = gt[view].R @ gt[13].R.T
         assert np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ R_gt.T).as_rotvec())) < 1.0
+
+
+@needs_real_data
+def test_the_depth_flows_are_found_once_each_while_the_poses_are_refined(monkeypatch):
+    """The flows do not depend on the poses: with three or more photos they are found on a
+    thread of their own while the joint fit runs, and the depth measurement reuses them."""
+    import threading
+
+    from pis3r.io import read_image
+    from pis3r.reconstruct import views
+    from pis3r.reconstruct.classical import ClassicalReconstructor
+    from pis3r.reconstruct.options import ReconstructOptions
+
+    found = []
+
+    def pair_flows(*args):
+        found.append(threading.current_thread().name)
+        return real_pair_flows(*args)
+
+    real_pair_flows = views.pair_flows
+    monkeypatch.setattr(views, "pair_flows", pair_flows)
+    folder = REAL / "middlebury-templeRing" / "images"
+    photos = [read_image(folder / f"templeR{v:04d}.png") for v in (13, 14, 15)]
+    scene = ClassicalReconstructor(ReconstructOptions()).reconstruct(photos)
+    assert scene.indices == (0, 1, 2) and scene.info["joint_refinement"]["views"] == 2
+    assert len(found) == 2 and "pis3r-flows" in found

@@ -36,7 +36,7 @@ from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
 from pis3r.reconstruct.pairs import (FEW_INLIERS, ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches,
                                      estimate_pair)
-from pis3r.reconstruct.views import homography_views, views_3d
+from pis3r.reconstruct.views import flows, homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View
 
@@ -147,6 +147,8 @@ class ClassicalReconstructor:
                         failures.pop(j, None)
 
         pair_all(later, self.options.detector == "auto")
+        # The depth's flows do not depend on the poses the joint fit refines: found meanwhile.
+        background = [self._flows_in_background(photos, pairs, {})] if len(photos) > 2 else []
         joint = self._refine_jointly(pairs, {}, not self.options.focal) if len(photos) > 2 else None
         # A photo the reference does not place is chained to the photo it shares most with (at
         # the focal the views refined together, which one pair may leave far off).
@@ -157,6 +159,7 @@ class ClassicalReconstructor:
             pair_all(retried, False)
             self._chain(photos, features, pairs, anchors, failures)
         if any(pairs[j].model == "3d" for j in anchors):
+            background.append(self._flows_in_background(photos, {j: pairs[j] for j in anchors}, anchors))
             # The chained pairs refined with the others.
             chained = self._refine_jointly(pairs, anchors, not self.options.focal)
             joint = joint.followed_by(chained) if joint and chained else joint or chained
@@ -177,6 +180,8 @@ class ClassicalReconstructor:
         place_all([j for j in pairs if j not in registered and j not in anchors])
         self._place_chained(photos, pairs, anchors, registered, failures)
         warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
+        for thread in background:
+            thread.join()
         for j in failures:
             failures[j] += "; nor does it overlap any other registered image"
         indices = sorted(registered)
@@ -278,17 +283,15 @@ class ClassicalReconstructor:
         """Start detecting the features of ``photos``, one at a time, on a thread (returned):
         what a later :meth:`features` reads, found while the held-back band test leaves a core
         idle part of the time. A photo that fails is left to that reader, which reports it."""
+        return _in_background(self._detections(photos), "pis3r-features")
 
-        def detect() -> None:
-            for detection in self._detections(photos):
-                try:
-                    detection.value()
-                except Exception:  # the reader computes it again and raises
-                    continue
-
-        thread = threading.Thread(target=detect, name="pis3r-features")
-        thread.start()
-        return thread
+    def _flows_in_background(self, photos: list[Photo], pairs: dict[int, PairGeometry],
+                             anchors: dict[int, int]) -> threading.Thread:
+        """Start finding the flows (:func:`pis3r.reconstruct.views.flows`) of the 3-D ``pairs``
+        (view -> geometry with ``anchors``' view or the reference), one pair at a time, on a
+        thread (returned)."""
+        return _in_background([flows(photos[anchors.get(j, 0)], photos[j], pair, self._memoised)
+                               for j, pair in pairs.items() if pair.model == "3d"], "pis3r-flows")
 
     def _detections(self, photos: list[Photo]) -> list[Deferred]:
         return [self.memo.setdefault(("features", id(p)), Deferred(partial(PhotoFeatures, p))) for p in photos]
@@ -359,6 +362,22 @@ class ClassicalReconstructor:
             shift = np.linalg.norm(matches.pts_a - matches.pts_b, axis=1)
             if np.median(shift) < 0.5 and np.abs(a.pixels - b.pixels).mean() < 2.0 / 255:
                 raise InputError(f"{a.name} and {b.name} are the same image: there is nothing to stitch")
+
+def _in_background(values: list[Deferred], name: str) -> threading.Thread:
+    """Compute ``values`` in turn on a started thread (returned); one that fails is left to its
+    reader, which computes it again and reports the error."""
+
+    def compute() -> None:
+        for value in values:
+            try:
+                value.value()
+            except Exception:  # the reader computes it again and raises
+                continue
+
+    thread = threading.Thread(target=compute, name=name)
+    thread.start()
+    return thread
+
 
 def _unregistered(photos: list[Photo], failures: dict[int, str]) -> NotEnoughOverlapError:
     reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())

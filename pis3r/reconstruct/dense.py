@@ -64,6 +64,30 @@ def _texture(gray: np.ndarray) -> np.ndarray:
     return np.clip(eig / 1e-3, 0.0, 1.0) ** 0.5
 
 
+def pair_flows(image_a: np.ndarray, image_b: np.ndarray, H_ab: np.ndarray) -> PairFlows:
+    """The DIS flows between two working images (``(h, w, 3)`` float32) both ways, after the
+    pre-warp by ``H_ab`` (pixels of a to b): what :func:`measure_pair` measures depth from.
+    They do not depend on the pair's pose, so they can be found while the pose is refined."""
+    gray_a, gray_b = to_gray_u8(image_a), to_gray_u8(image_b)
+    # The two flows are independent and spend their time in OpenCV, which releases the GIL:
+    # one thread each.
+    with ThreadPoolExecutor(1) as pool:
+        flow_to_b = pool.submit(_flow_to_other, gray_a, gray_b, H_ab)
+        to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
+        return PairFlows(gray_a, gray_b, flow_to_b.result(), to_a)
+
+
+@dataclass(frozen=True)
+class PairFlows:
+    """Two working images in grey (``(h, w)`` uint8) and the flows between them, ``to_b``
+    ``(h_a, w_a, 2)`` (each pixel of a in b) and ``to_a`` ``(h_b, w_b, 2)``."""
+
+    gray_a: np.ndarray
+    gray_b: np.ndarray
+    to_b: np.ndarray
+    to_a: np.ndarray
+
+
 def measure_pair(
     image_a: np.ndarray,
     image_b: np.ndarray,
@@ -74,23 +98,20 @@ def measure_pair(
     H_ab: np.ndarray,
     seeds_a: np.ndarray,
     seeds_b: np.ndarray,
+    flows: PairFlows | None = None,
 ) -> tuple[DepthMeasurement, DepthMeasurement]:
     """Depth of both views where they see each other, on the images' own grids.
 
     ``image_*``: ``(h, w, 3)`` float32 (already at working resolution, with ``K_*``
     matching); ``x_b = R x_a + t``; ``H_ab`` maps pixels of a to b (pre-warp);
     ``seeds_a``, ``seeds_b``: ``(N, 2)`` matching pixels of the two grids (the pair's
-    inliers), triangulated into both measurements. The measurement of a is made when first
-    read: the flows both ways check b's, but a stitch onto a reads only b's.
+    inliers), triangulated into both measurements; ``flows``: :func:`pair_flows` of these
+    images and ``H_ab`` if already found. The measurement of a is made when first read: the
+    flows both ways check b's, but a stitch onto a reads only b's.
     """
-    gray_a, gray_b = to_gray_u8(image_a), to_gray_u8(image_b)
+    flows = flows or pair_flows(image_a, image_b, H_ab)
+    gray_a, gray_b, to_b, to_a = flows.gray_a, flows.gray_b, flows.to_b, flows.to_a
     R_ba, t_ba = R.T, -R.T @ t
-    # The two flows are independent and spend their time in OpenCV, which releases the GIL:
-    # one thread each.
-    with ThreadPoolExecutor(1) as pool:
-        flow_to_b = pool.submit(_flow_to_other, gray_a, gray_b, H_ab)
-        to_a = _flow_to_other(gray_b, gray_a, np.linalg.inv(H_ab))
-        to_b = flow_to_b.result()
 
     def measure(forward, backward, K, K_other, R, t, gray, seeds, seeds_other):
         measured = _depth_from_flow(forward, backward, K, K_other, R, t, gray)

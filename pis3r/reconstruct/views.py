@@ -19,7 +19,7 @@ from pis3r.camera import Camera
 from pis3r.errors import ReconstructionError
 from pis3r.io import Photo
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.dense import DepthMeasurement, measure_pair
+from pis3r.reconstruct.dense import DepthMeasurement, PairFlows, measure_pair, pair_flows
 from pis3r.reconstruct.pairs import PairGeometry
 from pis3r.reconstruct.propagate import propagate_inverse_depth
 from pis3r.scene import Deferred, View
@@ -53,18 +53,16 @@ def views_3d(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[t
     ``depth_fill`` (without ``fill_ref``, the reference keeps only the depth the pair measured
     on it) and the reference's view with only that measured depth (0 where unmeasured).
     ``memoised(key, compute)``: the reconstruction's memo, which keeps the measurement."""
-    K_a, K_b, R, t, H, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.H, pair.inliers
+    K_a, K_b, R, t, inliers = pair.K_a, pair.K_b, pair.R, pair.t, pair.inliers
     img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
     img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
     Kw_a = Camera.identity(K_a, ref.width, ref.height).scaled(s_a).K
     Kw_b = Camera.identity(K_b, other.width, other.height).scaled(s_b).K
-    S_a = np.diag([s_a, s_a, 1.0])
-    S_b = np.diag([s_b, s_b, 1.0])
-    H_work = S_b @ H @ np.linalg.inv(S_a)
 
     def measure():
-        return measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, H_work, (inliers.pts_a + 0.5) * s_a - 0.5,
-                            (inliers.pts_b + 0.5) * s_b - 0.5)
+        return measure_pair(img_a, img_b, Kw_a, Kw_b, R, t, _work_homography(pair, s_a, s_b),
+                            (inliers.pts_a + 0.5) * s_a - 0.5, (inliers.pts_b + 0.5) * s_b - 0.5,
+                            flows(ref, other, pair, memoised).value())
 
     meas_a, meas_b = memoised(("dense", id(ref), id(other), R.tobytes(), t.tobytes(), K_a.tobytes(),
                                       K_b.tobytes()), measure)
@@ -86,6 +84,24 @@ def views_3d(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[t
     # the reference pastes its pixels. Each fill's two factorisations use both cores.
     return (filled_view(ref, img_a, meas_a, camera_a, depth_fill, deferred=True),
             filled_view(other, img_b, meas_b, camera_b, depth_fill), unfilled_a)
+
+def flows(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[tuple, Callable], Any]) -> Deferred:
+    """The pair's flows (:func:`pis3r.reconstruct.dense.pair_flows`) at the working size, as
+    kept in the reconstruction's memo: found on their first read, which may be on another
+    thread while the pair's pose is refined."""
+
+    def compute() -> PairFlows:
+        img_a, s_a = _resize(ref.pixels, WORK_MAX_SIDE)
+        img_b, s_b = _resize(other.pixels, WORK_MAX_SIDE)
+        return pair_flows(img_a, img_b, _work_homography(pair, s_a, s_b))
+
+    return memoised(("flows", id(ref), id(other), pair.H.tobytes()), lambda: Deferred(compute))
+
+
+def _work_homography(pair: PairGeometry, s_a: float, s_b: float) -> np.ndarray:
+    """The pair's homography between the working images (scaled by ``s_a`` and ``s_b``)."""
+    return np.diag([s_b, s_b, 1.0]) @ pair.H @ np.linalg.inv(np.diag([s_a, s_a, 1.0]))
+
 
 def filled_view(photo: Photo, image: np.ndarray, meas: DepthMeasurement, camera: Camera, method: str,
                 deferred: bool = False) -> View:
