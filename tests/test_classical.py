@@ -287,3 +287,11 @@ def test_a_background_detection_that_fails_is_left_to_its_reader(analytic_pair, 
     with pytest.raises(ValueError, match="no features"):
         reconstructor.features(photos)
     assert calls == ["broken", "ref", "broken"]
+
+
+def test_a_chained_view_whose_anchor_could_not_be_placed_is_dropped_with_the_reason():
+    photos = _crops((0, 150, 270))
+    failures = {}
+    registered = {}
+    ClassicalReconstructor(ReconstructOptions())._place_chained(photos, {}, {2: 1}, registered, failures)
+    assert registered == {} and failures == {2: "crop150, through which it was chained, could not be placed"}
