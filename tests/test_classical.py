@@ -173,7 +173,7 @@ def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_thr
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2) and scene.dropped == ()
     assert not any(memo["features", id(photo)].value()._affine.computed for photo in photos)
-    assert ("matches", id(photos[0]), id(photos[2]), "auto") not in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "auto", None) not in memo
     # Shifts of the picture: the rotations about the vertical axis grow with the shift.
     turn = [view.camera.R[0, 2] for view in scene.views]
     assert turn[1] < 0 and turn[2] / turn[1] == pytest.approx(270 / 150, rel=0.1)
@@ -202,7 +202,7 @@ def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift
     photos, memo = _crops((300, 100, 570)), {}
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
-    assert ("matches", id(photos[0]), id(photos[2]), "auto") in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "auto", None) in memo
     assert memo["features", id(photos[0])].value()._affine.computed
 
 

@@ -219,3 +219,39 @@ def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(
     for thread in threads:
         thread.join()
     assert len(calls) == 1 and found[0] is found[1]
+
+
+def _shifted_crops(count: int = 2) -> list[PhotoFeatures]:
+    """Features of overlapping 320 px crops of one picture, 120 px apart."""
+    from skimage import data
+
+    picture = cv2.resize(data.astronaut(), (700, 400), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+    return [PhotoFeatures(Photo(picture[:, x:x + 320].copy(), f"crop{x}")) for x in range(0, 120 * count, 120)]
+
+
+def test_matching_the_strongest_features_only_and_all_of_them_when_those_agree_too_little():
+    a, b = _shifted_crops()
+    full = consistent_matches(a, b, "SIFT")
+    assert full.inliers.sum() >= 200 and len(a.sift.points) > 400
+    capped = consistent_matches(a, b, "SIFT", strongest=300)
+    strong_a = {tuple(p) for p in a.sift.strongest(300).points}
+    assert 50 <= capped.inliers.sum() < full.inliers.sum()
+    assert all(tuple(p) in strong_a for p in capped.matches.pts_a)
+    # Too few for FEW_INLIERS among the 40 strongest: with auto, all of SIFT's, and no ASIFT.
+    assert consistent_matches(a, b, "SIFT", strongest=40).inliers.sum() < 50
+    retried = consistent_matches(a, b, "auto", strongest=40)
+    assert retried.detector == "SIFT" and retried.inliers.sum() == full.inliers.sum()
+    assert not a._affine.computed and not b._affine.computed
+
+
+def test_later_pairs_of_several_photos_are_matched_on_the_strongest_features(monkeypatch):
+    from pis3r.reconstruct import classical
+
+    monkeypatch.setattr(classical, "MULTI_VIEW_FEATURES", 300)
+    photos = [features.photo for features in _shifted_crops(3)]
+    memo = {}
+    scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
+    assert scene.indices == (0, 1, 2)
+    # The first pair fixes the focal on all features; the next on the 300 strongest.
+    assert ("matches", id(photos[0]), id(photos[1]), "auto", None) in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "SIFT", 300) in memo

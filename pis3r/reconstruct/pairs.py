@@ -100,10 +100,12 @@ class ConsistentMatches:
     detector: str
 
 
-def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto") -> ConsistentMatches:
-    """Matches of ``a`` in ``b`` and their epipolar inliers. ``detector`` ``auto``: SIFT's;
-    when fewer than ``FEW_INLIERS``, ASIFT's instead if it finds more, and at least
-    ``MIN_AFFINE_INLIERS``. ``SIFT`` or ``ASIFT``: that detector's alone."""
+def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
+                       strongest: int | None = None) -> ConsistentMatches:
+    """Matches of ``a`` in ``b`` and their epipolar inliers. ``detector`` ``auto``: SIFT's, on
+    each photo's ``strongest`` features if given, then on all of them, then ASIFT's, until
+    ``FEW_INLIERS`` agree (ASIFT's if it finds more, and at least ``MIN_AFFINE_INLIERS``);
+    ``SIFT`` (on the ``strongest`` if given) or ``ASIFT``: that detector's alone."""
     w, h = a.photo.width, a.photo.height
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
@@ -117,9 +119,14 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
 
     if detector == "ASIFT":
         return affine()
-    found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
+    sift_a, sift_b = (a.sift, b.sift) if strongest is None else (a.sift.strongest(strongest), b.sift.strongest(strongest))
+    found = _epipolar(match(sift_a, sift_b), w, h, "SIFT")
     if detector == "SIFT" or found.inliers.sum() >= FEW_INLIERS:
         return found
+    if sift_a is not a.sift or sift_b is not b.sift:
+        found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
+        if found.inliers.sum() >= FEW_INLIERS:
+            return found
     retry = affine()
     count = retry.inliers.sum()
     return retry if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
