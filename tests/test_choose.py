@@ -235,8 +235,8 @@ def test_the_band_copies_features_are_detected_once_for_every_candidate(small_pa
 
     detected = []
     original = classical.PhotoFeatures
-    monkeypatch.setattr(classical, "PhotoFeatures", lambda photo: detected.append(photo.pixels.shape) or
-                        original(photo))
+    monkeypatch.setattr(classical, "PhotoFeatures", lambda photo, *cap: detected.append(photo.pixels.shape) or
+                        original(photo, *cap))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
     assert len(choice.scores) == 3 and len(detected) == 4
@@ -250,11 +250,14 @@ def test_later_photos_are_detected_during_the_band_test_and_reused(small_pair, m
 
     detected = []
     original = classical.PhotoFeatures
-    monkeypatch.setattr(classical, "PhotoFeatures", lambda photo: detected.append(photo.name) or original(photo))
+    monkeypatch.setattr(classical, "PhotoFeatures",
+                        lambda photo, *cap: detected.append(photo.name) or original(photo, *cap))
     third = np.ascontiguousarray(small_pair[1][:, ::-1])
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip((*small_pair, third), "abc")]
     memo: dict = {}
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo=memo)
-    assert ("features", id(photos[2])) in memo
-    classical.ClassicalReconstructor(choice.chosen.backend_options(ReconstructOptions()), memo).features(photos)
+    assert ("features", id(photos[2]), classical.MULTI_VIEW_FEATURES) in memo
+    reconstructor = classical.ClassicalReconstructor(choice.chosen.backend_options(ReconstructOptions()), memo)
+    reconstructor.features(photos[:2])
+    reconstructor.features(photos[2:], classical.MULTI_VIEW_FEATURES)
     assert sorted(detected) == ["a", "a", "b", "b", "c"]

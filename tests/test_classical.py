@@ -9,7 +9,7 @@ from pis3r.errors import InputError, NotEnoughOverlapError
 from pis3r.features import match
 from pis3r.io import Photo
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.classical import ClassicalReconstructor
+from pis3r.reconstruct.classical import MULTI_VIEW_FEATURES, ClassicalReconstructor
 from tests.analytic import planes_scene, render, two_view_cameras
 
 
@@ -172,7 +172,8 @@ def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_thr
     photos, memo = _crops((0, 150, 270)), {}
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2) and scene.dropped == ()
-    assert not any(memo["features", id(photo)].value()._affine.computed for photo in photos)
+    assert not any(memo["features", id(photo), None if k < 2 else MULTI_VIEW_FEATURES].value()._affine.computed
+                   for k, photo in enumerate(photos))
     assert ("matches", id(photos[0]), id(photos[2]), "auto", None) not in memo
     # Shifts of the picture: the rotations about the vertical axis grow with the shift.
     turn = [view.camera.R[0, 2] for view in scene.views]
@@ -203,7 +204,7 @@ def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
     assert ("matches", id(photos[0]), id(photos[2]), "auto", None) in memo
-    assert memo["features", id(photos[0])].value()._affine.computed
+    assert memo["features", id(photos[0]), None].value()._affine.computed
 
 
 def test_a_view_that_overlaps_no_registered_view_is_dropped_with_the_reason():
@@ -243,10 +244,10 @@ def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monke
     photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt"), Photo(ref_img[:, ::-1].copy(), "flipped")]
     detected, threads = [], set()
 
-    def counted(photo):
+    def counted(photo, *cap):
         detected.append(photo.name)
         threads.add(threading.get_ident())
-        return PhotoFeatures(photo)
+        return PhotoFeatures(photo, *cap)
 
     monkeypatch.setattr(classical, "PhotoFeatures", counted)
     reconstructor = ClassicalReconstructor(ReconstructOptions())
@@ -273,11 +274,11 @@ def test_a_background_detection_that_fails_is_left_to_its_reader(analytic_pair, 
     photos = [Photo(tgt_img, "broken"), Photo(ref_img, "ref")]
     calls, escaped = [], []
 
-    def failing(photo):
+    def failing(photo, *cap):
         calls.append(photo.name)
         if photo.name == "broken":
             raise ValueError("no features")
-        return PhotoFeatures(photo)
+        return PhotoFeatures(photo, *cap)
 
     monkeypatch.setattr(classical, "PhotoFeatures", failing)
     monkeypatch.setattr(threading, "excepthook", escaped.append)

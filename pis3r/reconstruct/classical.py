@@ -47,11 +47,13 @@ from pis3r.scene import Deferred, DroppedView, Scene, View
 CHAIN_ANCHORS = 3
 CHAIN_COUNT_FEATURES = 2000
 # With three or more photos, the pairs after the first are matched on each photo's this many
-# strongest SIFT features (of up to 8000): the joint fit ties each view through all its
+# strongest SIFT features (of up to 8000), and the photos after the first two keep only those
+# (SIFT then computes half the descriptors): the joint fit ties each view through all its
 # pairs, and matching costs the product of the counts. On the calibrated scenes
 # (benchmarks/multiview_pose.py) the poses and focal stay within 0.01-0.02 deg and 0.6 px
 # (the fountain's largest error falls, 0.51 -> 0.32 deg) and the eleven fountain views
-# take 1 s less. A view that finds too few consistent matches so is matched again on all.
+# take 1-2 s less. A pair that finds too few consistent matches so is matched again on all
+# of the reference's (then by ASIFT).
 MULTI_VIEW_FEATURES = 4000
 
 
@@ -83,7 +85,7 @@ class ClassicalReconstructor:
         measured. The model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
-        features = self.features(photos)
+        features = self.features(photos[:2]) + self.features(photos[2:], MULTI_VIEW_FEATURES)
         ref = photos[0]
         focal_ref, source = self._known_focal(ref)
         pairs: dict[int, PairGeometry] = {}
@@ -277,21 +279,23 @@ class ClassicalReconstructor:
         return self.pair_geometry(*self.features([ref, other]), *self._known_focal(ref),
                                   focal_is_final=bool(self.options.focal))
 
-    def features(self, photos: list[Photo]) -> list[PhotoFeatures]:
-        """Each photo's features, memoised; those not yet found are detected two photos at a
-        time (OpenCV's SIFT releases the GIL and leaves a core idle for part of each photo), and
-        those being detected elsewhere (:meth:`detect_in_background`) waited for."""
-        found = self._detections(photos)
+    def features(self, photos: list[Photo], max_features: int | None = None) -> list[PhotoFeatures]:
+        """Each photo's features (SIFT's ``max_features`` strongest, if given), memoised; those
+        not yet found are detected two photos at a time (OpenCV's SIFT releases the GIL and
+        leaves a core idle for part of each photo), and those being detected elsewhere
+        (:meth:`detect_in_background`) waited for."""
+        found = self._detections(photos, max_features)
         pending = list({id(d): d for d in found if not d.computed}.values())
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(Deferred.value, pending))
         return [d.value() for d in found]
 
-    def detect_in_background(self, photos: list[Photo]) -> threading.Thread:
-        """Start detecting the features of ``photos``, one at a time, on a thread (returned):
-        what a later :meth:`features` reads, found while the held-back band test leaves a core
-        idle part of the time. A photo that fails is left to that reader, which reports it."""
-        return _in_background(self._detections(photos), "pis3r-features")
+    def detect_in_background(self, photos: list[Photo], max_features: int | None = None) -> threading.Thread:
+        """Start detecting the features of ``photos`` (as :meth:`features` with
+        ``max_features``), one at a time, on a thread (returned): what a later :meth:`features`
+        reads, found while the held-back band test leaves a core idle part of the time. A photo
+        that fails is left to that reader, which reports it."""
+        return _in_background(self._detections(photos, max_features), "pis3r-features")
 
     def _flows_in_background(self, photos: list[Photo], pairs: dict[int, PairGeometry],
                              anchors: dict[int, int]) -> threading.Thread:
@@ -301,8 +305,9 @@ class ClassicalReconstructor:
         return _in_background([flows(photos[anchors.get(j, 0)], photos[j], pair, self._memoised)
                                for j, pair in pairs.items() if pair.model == "3d"], "pis3r-flows")
 
-    def _detections(self, photos: list[Photo]) -> list[Deferred]:
-        return [self.memo.setdefault(("features", id(p)), Deferred(partial(PhotoFeatures, p))) for p in photos]
+    def _detections(self, photos: list[Photo], max_features: int | None = None) -> list[Deferred]:
+        return [self.memo.setdefault(("features", id(p), max_features), Deferred(partial(PhotoFeatures, p, max_features)))
+                for p in photos]
 
     def pair_geometry(self, ref: PhotoFeatures, other: PhotoFeatures, focal_ref: float | None = None,
                       source: str = "", focal_is_final: bool = False, named: bool = False,

@@ -73,14 +73,14 @@ FOCAL_EVIDENCE = 2.5
 
 class PhotoFeatures:
     """A photo with its ``(H, W)`` uint8 luminance (:func:`pis3r.features.to_gray_u8`), its SIFT
-    features, and its ASIFT features computed when first asked for."""
+    features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's."""
 
-    def __init__(self, photo: Photo) -> None:
+    def __init__(self, photo: Photo, max_features: int | None = None) -> None:
         self.photo = photo
         # SIFT, ASIFT, match refinement and vanishing points all read this luminance: converted
         # once, not by each (0.07-0.25 s per 12 MP photo).
         self.gray = to_gray_u8(photo.pixels)
-        self.sift: Features = detect(self.gray)
+        self.sift: Features = detect(self.gray) if max_features is None else detect(self.gray, max_features)
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))

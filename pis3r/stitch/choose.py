@@ -28,7 +28,7 @@ import numpy as np
 
 from pis3r.errors import Pis3rError, one_line
 from pis3r.io import Photo, downscaled
-from pis3r.reconstruct.classical import ClassicalReconstructor
+from pis3r.reconstruct.classical import MULTI_VIEW_FEATURES, ClassicalReconstructor
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.propagate import DEFAULT_DEPTH_FILL, DEPTH_FILLS
 from pis3r.scene import Scene
@@ -191,9 +191,10 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
         detector = stitching.detector(photos[0], photos[1])
         copies.result()
     if memo is not None and len(photos) > BAND_VIEWS:
-        # The other photos' features, which the stitch reads next, are found meanwhile on a
-        # core the band test leaves idle part of the time.
-        stitching.detect_in_background(photos[BAND_VIEWS:])
+        # The other photos' features, which the stitch reads next (as it detects them:
+        # ClassicalReconstructor.reconstruct), are found meanwhile on a core the band test
+        # leaves idle part of the time.
+        stitching.detect_in_background(photos[BAND_VIEWS:], MULTI_VIEW_FEATURES)
     guess = Candidate("3d", allowed[0].depth_fill, allowed[0].focal_rule) if model == "auto" else None
     with ThreadPoolExecutor(1) as speculation:
         whole = speculation.submit(_whole_scene, guess, photos, base, memo) if guess and memo is not None else None
