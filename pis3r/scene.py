@@ -46,6 +46,22 @@ class Deferred:
         self._compute, self._value, self._lock = None, state["value"], threading.Lock()
 
 
+def compute_in_background(values: list[Deferred], name: str) -> threading.Thread:
+    """Compute ``values`` in turn on a started thread (returned); one that fails is left to its
+    reader, which computes it again and reports the error."""
+
+    def compute() -> None:
+        for value in values:
+            try:
+                value.value()
+            except Exception:  # the reader computes it again and raises
+                continue
+
+    thread = threading.Thread(target=compute, name=name)
+    thread.start()
+    return thread
+
+
 class Deferrable:
     """A dataclass field that may be given a :class:`Deferred`: reading it returns the
     deferred's value (item ``part`` of it, when one deferred computes several fields),

@@ -38,7 +38,7 @@ from pis3r.reconstruct.pairs import (FEW_INLIERS, ConsistentMatches, PairGeometr
                                      estimate_pair)
 from pis3r.reconstruct.views import flows, homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
-from pis3r.scene import Deferred, DroppedView, Scene, View
+from pis3r.scene import Deferred, DroppedView, Scene, View, compute_in_background
 
 # A view that does not overlap the reference tries this many registered views (those it shares
 # the most mutual matches with among both photos' CHAIN_COUNT_FEATURES strongest SIFT features:
@@ -46,14 +46,11 @@ from pis3r.scene import Deferred, DroppedView, Scene, View
 # anchors as all features do, and the anchor's pair is then matched in full) before it is dropped.
 CHAIN_ANCHORS = 3
 CHAIN_COUNT_FEATURES = 2000
-# With three or more photos, the pairs after the first are matched on each photo's this many
-# strongest SIFT features (of up to 8000), and the photos after the first two keep only those
-# (SIFT then computes half the descriptors): the joint fit ties each view through all its
-# pairs, and matching costs the product of the counts. On the calibrated scenes
-# (benchmarks/multiview_pose.py) the poses and focal stay within 0.01-0.02 deg and 0.6 px
-# (the fountain's largest error falls, 0.51 -> 0.32 deg) and the eleven fountain views
-# take 1-2 s less. A pair that finds too few consistent matches so is matched again on all
-# of the reference's (then by ASIFT).
+# With three or more photos, the pairs after the first match each photo's this many strongest
+# SIFT features (of up to 8000; the photos after the first two are detected with these only):
+# the joint fit ties each view through all its pairs, and matching costs the product of the
+# counts. benchmarks/multiview_pose.py: the same poses within 0.02 deg (the fountain's worst
+# 0.51 -> 0.32), eleven views 1.5-2 s faster. Too few agree: all the reference's, then ASIFT.
 MULTI_VIEW_FEATURES = 4000
 
 
@@ -82,7 +79,8 @@ class ClassicalReconstructor:
         more photos, one that overlaps no paired photo is dropped (``Scene.dropped``) instead
         of failing the rest, and the poses and focal of the 3-D pairs, chained or not, are
         refined together (:func:`pis3r.reconstruct.joint.refine_jointly`) before any depth is
-        measured. The model, parallax and match counts reported are the first registered pair's."""
+        measured; the views registered to ``photos[0]`` take the scale the fit gives them. The
+        model, parallax and match counts reported are the first registered pair's."""
         # The robust estimators are randomised; a fixed seed makes runs repeatable.
         cv2.setRNGSeed(0)
         features = self.features(photos[:2]) + self.features(photos[2:], MULTI_VIEW_FEATURES)
@@ -140,7 +138,11 @@ class ClassicalReconstructor:
 
         def view_with_reference(j: int) -> View | Pis3rError:
             try:
-                view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
+                if j in distances and first_view in distances:
+                    # Scaled as the joint fit places it: no depth measured on the reference.
+                    view_j = self._views(ref, photos[j], pairs[j], None, distances[j] / distances[first_view])[1]
+                else:
+                    view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
                 return self._placed(view_j, pairs[j], photos[j], ref, 0)
             except Pis3rError as exc:
                 return exc
@@ -183,9 +185,11 @@ class ClassicalReconstructor:
                 del pairs[j]
                 continue
             first, registered[0], registered[j] = pairs[j], view_ref, self._placed(view_j, pairs[j], photos[j], ref, 0)
+            first_view = j
             break
         if not registered:
             raise _unregistered(photos, failures)
+        distances = joint.distances if joint else {}
         place_all([j for j in pairs if j not in registered and j not in anchors])
         self._place_chained(photos, pairs, anchors, registered, failures)
         warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
@@ -295,14 +299,14 @@ class ClassicalReconstructor:
         ``max_features``), one at a time, on a thread (returned): what a later :meth:`features`
         reads, found while the held-back band test leaves a core idle part of the time. A photo
         that fails is left to that reader, which reports it."""
-        return _in_background(self._detections(photos, max_features), "pis3r-features")
+        return compute_in_background(self._detections(photos, max_features), "pis3r-features")
 
     def _flows_in_background(self, photos: list[Photo], pairs: dict[int, PairGeometry],
                              anchors: dict[int, int]) -> threading.Thread:
         """Start finding the flows (:func:`pis3r.reconstruct.views.flows`) of the 3-D ``pairs``
         (view -> geometry with ``anchors``' view or the reference), one pair at a time, on a
         thread (returned)."""
-        return _in_background([flows(photos[anchors.get(j, 0)], photos[j], pair, self._memoised)
+        return compute_in_background([flows(photos[anchors.get(j, 0)], photos[j], pair, self._memoised)
                                for j, pair in pairs.items() if pair.model == "3d"], "pis3r-flows")
 
     def _detections(self, photos: list[Photo], max_features: int | None = None) -> list[Deferred]:
@@ -343,17 +347,22 @@ class ClassicalReconstructor:
                               float(np.hypot(onto_photo.width, onto_photo.height)))
         return replace(view, warp=warp)
 
-    def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth) -> tuple[View | None, View]:
+    def _views(self, ref: Photo, other: Photo, pair: PairGeometry, ref_depth,
+               scale: float | None = None) -> tuple[View | None, View]:
         """The pair's two views. With ``ref_depth`` (``ref``'s depth in the scene already
-        built) only the other view, brought to that scale: the first is then ``None``."""
+        built) only the other view, brought to that scale; with ``scale`` instead, only the
+        other view, scaled by it: the first is then ``None``."""
+        placed = ref_depth is not None or scale is not None
         if pair.model == "homography":
             view_ref, view_other = homography_views(ref, other, pair)
             measured_ref = view_ref
         else:
             view_ref, view_other, measured_ref = views_3d(ref, other, pair, self._memoised, self.options.depth_fill,
-                                                          ref_depth is None and self.options.fill_reference)
-        if ref_depth is None:
+                                                          not placed and self.options.fill_reference)
+        if not placed:
             return view_ref, view_other
+        if scale is not None:
+            return None, view_other.rescaled(scale)
         # Each pair has its own unknown scale; tie it to the scene's through the depths both
         # measured on ``ref``.
         ratio = geometry.median_depth_ratio(ref_depth, measured_ref.depth)
@@ -375,22 +384,6 @@ class ClassicalReconstructor:
             shift = np.linalg.norm(matches.pts_a - matches.pts_b, axis=1)
             if np.median(shift) < 0.5 and np.abs(a.pixels - b.pixels).mean() < 2.0 / 255:
                 raise InputError(f"{a.name} and {b.name} are the same image: there is nothing to stitch")
-
-def _in_background(values: list[Deferred], name: str) -> threading.Thread:
-    """Compute ``values`` in turn on a started thread (returned); one that fails is left to its
-    reader, which computes it again and reports the error."""
-
-    def compute() -> None:
-        for value in values:
-            try:
-                value.value()
-            except Exception:  # the reader computes it again and raises
-                continue
-
-    thread = threading.Thread(target=compute, name=name)
-    thread.start()
-    return thread
-
 
 def _unregistered(photos: list[Photo], failures: dict[int, str]) -> NotEnoughOverlapError:
     reasons = "; ".join(f"{photos[j].name}: {reason}" for j, reason in failures.items())

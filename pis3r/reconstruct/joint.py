@@ -56,9 +56,11 @@ class JointFit:
     """The pairs after joint refinement (``pairs``: view index -> :class:`PairGeometry` with its
     anchor; the views left out keep their own), the focal's factor, the median reprojection
     error (px) ``before`` and ``after``, and the fit's size (``views`` fitted besides the
-    reference)."""
+    reference). ``distances``: per fitted view, its camera's distance from the reference's in
+    the fit (the scale of its pair's unit translation, relative to the others')."""
 
     pairs: dict[int, PairGeometry]
+    distances: dict[int, float]
     views: int
     focal_factor: float
     before_px: float
@@ -95,6 +97,7 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
     fitted, iterations = problem.solve(begin)
     factor = math.exp(fitted.log_focal)
     world = {0: (np.eye(3), np.zeros(3)), **{j: (fitted.R[n], fitted.t[n]) for n, j in enumerate(start.views)}}
+    distances = {j: float(np.linalg.norm(world[j][1])) for j in start.views}
     refined = dict(pairs)
     for j in start.views:
         # The fitted pose relative to the anchor's: x_j = R (R_a X + t_a) + t.
@@ -108,7 +111,7 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
         refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
                              K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
-    return JointFit(refined, len(start.views), factor, before, problem.median_error(fitted), iterations,
+    return JointFit(refined, distances, len(start.views), factor, before, problem.median_error(fitted), iterations,
                     len(start.X), int(np.sum(start.camera > 0)))
 
 
