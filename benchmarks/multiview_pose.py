@@ -9,7 +9,8 @@ Two tables, both from this run:
   default options, as ``pis3r stitch`` runs it) on each set of :data:`SCENES`, reference first.
   Per set: the views registered, the median and largest error of each view's rotation relative
   to the reference against the GT's (degrees), the median error of the direction of its
-  translation, the reference's focal against the GT's, and the reconstruction's seconds.
+  translation, the median and largest error of its camera's position (:func:`position_errors`),
+  the reference's focal against the GT's, and the reconstruction's seconds.
 - ``engine``: every joint fit those reconstructions ran, solved again from the same start
   (:func:`pis3r.reconstruct.tracks.joint_start`: the same tracks, poses and points) by pis3r's
   Levenberg-Marquardt (:func:`pis3r.reconstruct.joint.refine_jointly`) and by pycolmap's bundle
@@ -169,6 +170,20 @@ def pose_errors(poses: dict[int, tuple[np.ndarray, np.ndarray]], gt: dict[int, C
     return errors
 
 
+def position_errors(poses: dict[int, tuple[np.ndarray, np.ndarray]], gt: dict[int, Camera],
+                    reference: int) -> dict[int, float]:
+    """Per view (view -> its ``(R, t)`` relative to the reference's): how far its camera centre
+    is from the GT's, in the reference's frame, after the one scale that fits them all best
+    (least squares), as a percentage of the GT centres' mean distance from the reference."""
+    views = sorted(poses)
+    centres = np.stack([-poses[v][0].T @ poses[v][1] for v in views])
+    truth = np.stack([-R.T @ t for R, t in (relative(gt[v].R, gt[v].t, gt[reference].R, gt[reference].t)
+                                            for v in views)])
+    scale = float(np.sum(centres * truth) / np.sum(centres * centres))
+    errors = np.linalg.norm(scale * centres - truth, axis=1) / np.mean(np.linalg.norm(truth, axis=1))
+    return {v: 100.0 * float(e) for v, e in zip(views, errors)}
+
+
 def _spread(values: list[float]) -> str:
     return f"{np.median(values):5.2f} / {max(values):5.2f}" if values else "  n/a"
 
@@ -192,10 +207,12 @@ def main() -> None:
         scene = reconstructor.reconstruct([read_image(view_path(folder, v)) for v in order])
         seconds = time.perf_counter() - began
         cameras = {order[i]: view.camera for i, view in zip(scene.indices, scene.views)}
-        errors = pose_errors({v: relative(c.R, c.t, cameras[reference].R, cameras[reference].t)
-                              for v, c in cameras.items() if v != reference}, gt, reference)
+        poses = {v: relative(c.R, c.t, cameras[reference].R, cameras[reference].t)
+                 for v, c in cameras.items() if v != reference}
+        errors = pose_errors(poses, gt, reference)
         scene_rows.append((label, f"{len(errors)}/{len(views)}", _spread([e[0] for e in errors.values()]),
                            f"{np.median([e[1] for e in errors.values()]):5.2f}",
+                           _spread(list(position_errors(poses, gt, reference).values())),
                            f"{scene.focal:7.1f} / {gt[reference].K[0, 0]:7.1f}", f"{seconds:5.1f}"))
         for number, (pairs, anchors, refine_focal) in enumerate(reconstructor.fits, start=1):
             start = joint_start(pairs, anchors)
@@ -220,8 +237,8 @@ def main() -> None:
                 e = pose_errors(poses, gt, reference)
                 engine_rows.append((f"{label} #{number}", engine, f"{len(start.views)}", f"{secs:6.2f}", f"{px:6.3f}",
                                     _spread([v[0] for v in e.values()]), f"{f:7.1f} / {gt[reference].K[0, 0]:7.1f}"))
-    _table(("scene (reference; views)", "registered", "rotation med / max", "direction med", "focal / GT", "s"),
-           scene_rows)
+    _table(("scene (reference; views)", "registered", "rotation med / max", "direction med", "position % med / max",
+            "focal / GT", "s"), scene_rows)
     _table(("fit", "engine", "views", "s", "px after", "rotation med / max", "focal / GT"), engine_rows)
 
 

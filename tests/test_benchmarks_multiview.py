@@ -50,3 +50,16 @@ def test_pose_errors_are_relative_to_the_reference_and_in_degrees():
     assert errors[1] == pytest.approx((3.0, 90.0))
     # The scale of a translation is free.
     assert multiview.pose_errors({1: (R_gt, 5 * t_gt)}, gt, 0)[1] == pytest.approx((0.0, 0.0), abs=1e-5)
+
+
+def test_position_errors_are_after_the_best_scale_and_relative_to_the_distances():
+    K = np.diag([100.0, 100.0, 1.0])
+    gt = {0: Camera(K, np.eye(3), np.zeros(3), 10, 10), 1: Camera(K, np.eye(3), np.array([-1.0, 0.0, 0.0]), 10, 10),
+          2: Camera(K, np.eye(3), np.array([0.0, -1.0, 0.0]), 10, 10)}
+    # The same centres at another scale: no error.
+    exact = {1: (np.eye(3), np.array([-3.0, 0.0, 0.0])), 2: (np.eye(3), np.array([0.0, -3.0, 0.0]))}
+    assert multiview.position_errors(exact, gt, 0) == pytest.approx({1: 0.0, 2: 0.0}, abs=1e-9)
+    # One centre 10 % of the distance off across: 10 % at the best scale (1 here).
+    off = {1: (np.eye(3), np.array([-1.0, -0.1, 0.0])), 2: (np.eye(3), np.array([0.0, -1.0, 0.0]))}
+    errors = multiview.position_errors(off, gt, 0)
+    assert errors[1] == pytest.approx(10.0, rel=0.01) and errors[2] < 1.0

@@ -294,5 +294,5 @@ def test_a_chained_view_whose_anchor_could_not_be_placed_is_dropped_with_the_rea
     photos = _crops((0, 150, 270))
     failures = {}
     registered = {}
-    ClassicalReconstructor(ReconstructOptions())._place_chained(photos, {}, {2: 1}, registered, failures)
+    ClassicalReconstructor(ReconstructOptions())._place_chained(photos, {}, {2: 1}, {}, registered, failures)
     assert registered == {} and failures == {2: "crop150, through which it was chained, could not be placed"}

@@ -231,10 +231,10 @@ def test_the_depth_flows_are_found_once_each_while_the_poses_are_refined(monkeyp
 
 @needs_real_data
 def test_the_views_the_fit_places_are_scaled_as_it_places_them(monkeypatch):
-    """The joint fit gives every fitted view's distance from the reference: the views are
-    scaled by it, not by a median depth ratio measured again on the reference for each pair
-    (on the fountain, ref 5, view 10's camera was then 5.1 % of its distance off the GT, 0.8 %
-    now)."""
+    """The joint fit gives every fitted pair's baseline: the views are scaled by it, not by a
+    median depth ratio measured again on the reference (or the anchor) for each pair (on the
+    fountain, ref 5, view 10's camera was then 5.1 % of its distance off the GT, 0.8 % now;
+    Herz-Jesus, ref 0, with a chained view: 4.3 %, 1.1 % now)."""
     from pis3r.io import read_image
     from pis3r.reconstruct import classical
     from pis3r.reconstruct.options import ReconstructOptions
@@ -247,4 +247,11 @@ def test_the_views_the_fit_places_are_scaled_as_it_places_them(monkeypatch):
     scene = classical.ClassicalReconstructor(ReconstructOptions()).reconstruct(photos)
     (fit,) = fits
     distance = [float(np.linalg.norm(view.camera.t)) for view in scene.views[1:]]
-    assert distance[1] / distance[0] == pytest.approx(fit.distances[2] / fit.distances[1], rel=1e-9)
+    assert distance[1] / distance[0] == pytest.approx(fit.baselines[2] / fit.baselines[1], rel=1e-9)
+    # A view chained to another (19 through 15) too: its baseline from its anchor's camera.
+    photos = [read_image(folder / f"templeR{v:04d}.png") for v in (13, 15, 19)]
+    fits.clear()
+    anchor, chained = classical.ClassicalReconstructor(ReconstructOptions()).reconstruct(photos).views[1:]
+    R = chained.camera.R @ anchor.camera.R.T
+    baseline = np.linalg.norm(chained.camera.t - R @ anchor.camera.t) / np.linalg.norm(anchor.camera.t)
+    assert baseline == pytest.approx(fits[-1].baselines[2] / fits[-1].baselines[1], rel=1e-9)

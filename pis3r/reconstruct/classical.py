@@ -138,9 +138,9 @@ class ClassicalReconstructor:
 
         def view_with_reference(j: int) -> View | Pis3rError:
             try:
-                if j in distances and first_view in distances:
+                if j in baselines and first_view in baselines:
                     # Scaled as the joint fit places it: no depth measured on the reference.
-                    view_j = self._views(ref, photos[j], pairs[j], None, distances[j] / distances[first_view])[1]
+                    view_j = self._views(ref, photos[j], pairs[j], None, baselines[j] / baselines[first_view])[1]
                 else:
                     view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
                 return self._placed(view_j, pairs[j], photos[j], ref, 0)
@@ -189,9 +189,12 @@ class ClassicalReconstructor:
             break
         if not registered:
             raise _unregistered(photos, failures)
-        distances = joint.distances if joint else {}
+        baselines = joint.baselines if joint else {}
         place_all([j for j in pairs if j not in registered and j not in anchors])
-        self._place_chained(photos, pairs, anchors, registered, failures)
+        # A chained view the fit placed with its anchor takes its scale too.
+        scales = {j: baselines[j] / baselines[first_view] for j in anchors
+                  if j in baselines and anchors[j] in baselines and first_view in baselines}
+        self._place_chained(photos, pairs, anchors, scales, registered, failures)
         warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
         for thread in background:
             thread.join()
@@ -249,17 +252,18 @@ class ClassicalReconstructor:
                     break
 
     def _place_chained(self, photos: list[Photo], pairs: dict[int, PairGeometry], anchors: dict[int, int],
-                       registered: dict[int, View], failures: dict[int, str]) -> None:
+                       scales: dict[int, float], registered: dict[int, View], failures: dict[int, str]) -> None:
         """The chained photos' views (``anchors``: view -> anchor, each after its anchor), their
-        scale tied through the anchor's depth and their pose composed with the anchor's
-        (:meth:`pis3r.scene.View.in_world_of`); added to ``registered``, or to ``failures``
-        with the reason."""
+        pose composed with the anchor's (:meth:`pis3r.scene.View.in_world_of`), their scale
+        ``scales``' where given (the joint fit's), else tied through the anchor's depth; added
+        to ``registered``, or to ``failures`` with the reason."""
         for j, i in anchors.items():
             if i not in registered:
                 failures[j] = f"{photos[i].name}, through which it was chained, could not be placed"
                 continue
             try:
-                _, view_j = self._views(photos[i], photos[j], pairs[j], registered[i].depth)
+                depth = None if j in scales else registered[i].depth
+                _, view_j = self._views(photos[i], photos[j], pairs[j], depth, scales.get(j))
             except Pis3rError as exc:
                 failures[j] = str(exc)
                 continue

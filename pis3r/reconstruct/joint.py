@@ -56,11 +56,12 @@ class JointFit:
     """The pairs after joint refinement (``pairs``: view index -> :class:`PairGeometry` with its
     anchor; the views left out keep their own), the focal's factor, the median reprojection
     error (px) ``before`` and ``after``, and the fit's size (``views`` fitted besides the
-    reference). ``distances``: per fitted view, its camera's distance from the reference's in
-    the fit (the scale of its pair's unit translation, relative to the others')."""
+    reference). ``baselines``: per fitted view, the length of its pair's translation in the
+    fit (from its anchor's camera: the reference's, or the view it is chained to), the scale of
+    the pair's unit translation relative to the others'."""
 
     pairs: dict[int, PairGeometry]
-    distances: dict[int, float]
+    baselines: dict[int, float]
     views: int
     focal_factor: float
     before_px: float
@@ -97,13 +98,13 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
     fitted, iterations = problem.solve(begin)
     factor = math.exp(fitted.log_focal)
     world = {0: (np.eye(3), np.zeros(3)), **{j: (fitted.R[n], fitted.t[n]) for n, j in enumerate(start.views)}}
-    distances = {j: float(np.linalg.norm(world[j][1])) for j in start.views}
-    refined = dict(pairs)
+    refined, baselines = dict(pairs), {}
     for j in start.views:
         # The fitted pose relative to the anchor's: x_j = R (R_a X + t_a) + t.
         R_a, t_a = world[anchors.get(j, 0)]
         R_rel = world[j][0] @ R_a.T
         t_rel = world[j][1] - R_rel @ t_a
+        baselines[j] = float(np.linalg.norm(t_rel))
         source, warnings = pairs[j].focal_source, pairs[j].warnings
         if refine_focal:
             # The views together determine the focal the pair left free.
@@ -111,7 +112,7 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
         refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
                              K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
-    return JointFit(refined, distances, len(start.views), factor, before, problem.median_error(fitted), iterations,
+    return JointFit(refined, baselines, len(start.views), factor, before, problem.median_error(fitted), iterations,
                     len(start.X), int(np.sum(start.camera > 0)))
 
 
