@@ -16,9 +16,9 @@ self-calibrated, one log-scale of every focal (the pairs keep the views' focal r
 :func:`pis3r.reconstruct.geometry.refine_pose` does). The cost is the robust (Cauchy)
 reprojection error in pixels, minimised by Levenberg-Marquardt with the points eliminated
 (Schur complement: Triggs et al., "Bundle adjustment - a modern synthesis", 2000), the robust
-loss by reweighting each step. The scale is free: what comes out is each pair's rotation,
-translation direction and focals; the views' depths are tied to one scale afterwards, as
-without this refinement.
+loss by reweighting each step. The overall scale is free: what comes out is each pair's
+rotation, translation direction and focals, and its baseline relative to the others'
+(:attr:`JointFit.baselines`), which scales the pair's depth in the scene.
 """
 
 from __future__ import annotations
