@@ -37,7 +37,7 @@ from pis3r.camera import Camera
 from pis3r.eval.cases import calibrated_views
 from pis3r.io import read_image
 from pis3r.reconstruct.classical import ClassicalReconstructor
-from pis3r.reconstruct.joint import MAX_ITERATIONS, refine_jointly
+from pis3r.reconstruct.joint import MAX_ITERATIONS, refine_jointly, reprojection_scale
 from pis3r.reconstruct.tracks import JointStart, joint_start
 from pis3r.reconstruct.options import ReconstructOptions
 
@@ -227,7 +227,7 @@ def main() -> None:
                 R_a, t_a = ours[order[anchors[j]]] if anchors[j] else (np.eye(3), np.zeros(3))
                 ours[order[j]] = (fit.pairs[j].R @ R_a, fit.pairs[j].R @ t_a + fit.pairs[j].t)
             began = time.perf_counter()
-            R, t, focal, median_px = colmap_fit(start, refine_focal, _loss_scale(start))
+            R, t, focal, median_px = colmap_fit(start, refine_focal, reprojection_scale(start.K[0]))
             colmap_seconds = time.perf_counter() - began
             theirs = {order[j]: (R[n], t[n]) for n, j in enumerate(start.views)}
             reference_focal = start.K[0, 0, 0]
@@ -240,14 +240,6 @@ def main() -> None:
     _table(("scene (reference; views)", "registered", "rotation med / max", "direction med", "position % med / max",
             "focal / GT", "s"), scene_rows)
     _table(("fit", "engine", "views", "s", "px after", "rotation med / max", "focal / GT"), engine_rows)
-
-
-def _loss_scale(start: JointStart) -> float:
-    """The Cauchy scale pis3r's fit uses for this start (px)."""
-    from pis3r.reconstruct.geometry import pixel_scale
-    from pis3r.reconstruct.joint import REPROJECTION_SCALE_PX
-
-    return REPROJECTION_SCALE_PX * pixel_scale(*start.K[0, :2, 2] * 2)
 
 
 def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> None:

@@ -138,9 +138,8 @@ class ClassicalReconstructor:
 
         def view_with_reference(j: int) -> View | Pis3rError:
             try:
-                if j in baselines and first_view in baselines:
-                    # Scaled as the joint fit places it: no depth measured on the reference.
-                    view_j = self._views(ref, photos[j], pairs[j], None, baselines[j] / baselines[first_view])[1]
+                if j in scales:
+                    view_j = self._views(ref, photos[j], pairs[j], None, scales[j])[1]
                 else:
                     view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
                 return self._placed(view_j, pairs[j], photos[j], ref, 0)
@@ -189,11 +188,12 @@ class ClassicalReconstructor:
             break
         if not registered:
             raise _unregistered(photos, failures)
+        # The views the joint fit placed (a chained one only with its anchor) take the scale it
+        # gives them against the first pair's: no depth is measured on the reference or an
+        # anchor to tie theirs.
         baselines = joint.baselines if joint else {}
+        scales = {j: b / baselines[first_view] for j, b in baselines.items()} if first_view in baselines else {}
         place_all([j for j in pairs if j not in registered and j not in anchors])
-        # A chained view the fit placed with its anchor takes its scale too.
-        scales = {j: baselines[j] / baselines[first_view] for j in anchors
-                  if j in baselines and anchors[j] in baselines and first_view in baselines}
         self._place_chained(photos, pairs, anchors, scales, registered, failures)
         warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
         for thread in background:

@@ -51,6 +51,12 @@ MAX_DAMPING = 1e8
 JOINTLY = "; refined over"
 
 
+def reprojection_scale(K_ref: np.ndarray) -> float:
+    """The Cauchy scale (px) of the fit's reprojection errors for the reference's ``K_ref``
+    ``(3, 3)``: the image's size from its principal point, as the pair fits scale theirs."""
+    return REPROJECTION_SCALE_PX * pixel_scale(*K_ref[:2, 2] * 2)
+
+
 @dataclass(frozen=True)
 class JointFit:
     """The pairs after joint refinement (``pairs``: view index -> :class:`PairGeometry` with its
@@ -138,8 +144,7 @@ class _Problem:
         self.num_points, self.num_views, self.refine_focal = int(point.max()) + 1, len(K) - 1, refine_focal
         self.point, self.camera, self.observed = point, camera, xy
         self.K = K[camera]
-        # The image's size from its principal point, as the pair fits scale theirs.
-        self.scale = REPROJECTION_SCALE_PX * pixel_scale(*K[0, :2, 2] * 2)
+        self.scale = reprojection_scale(K[0])
         self.unknowns = 6 * self.num_views + (1 if refine_focal else 0)
         spare = self.unknowns
         self.columns = np.where(camera[:, None] > 0, 6 * (camera[:, None] - 1) + np.arange(6), spare)
