@@ -208,81 +208,115 @@ FLANN_CHECKS = 32
 def _exact_neighbours(desc_a: np.ndarray, desc_b: np.ndarray, k: int):
     """The ``k`` nearest neighbours both ways, ``((dist (N, k), idx (N, k)), (dist (M, k),
     idx (M, k)))`` with distances sorted, from all distances between unit-norm descriptors.
-    For ``k = 2`` the way back comes from the same product (:func:`_back_of_nearest`: only
-    the rows :func:`match` reads); otherwise from its own product, since a partial sort down
-    the columns of the first is several times slower (non-contiguous reads)."""
-    similarity = _similarity(desc_a, desc_b)
-    forward = _nearest(similarity, k)
-    if k != 2:
-        return forward, _nearest(_similarity(desc_b, desc_a), k)
-    return forward, _back_of_nearest(similarity, forward[1][:, 0])
+    For ``k = 2`` (every plain match) one scan of the product gives both ways
+    (:func:`_scan_two_nearest`); otherwise two products, since a partial sort down the
+    columns of the first is several times slower (non-contiguous reads)."""
+    if k == 2:
+        return _scan_two_nearest(desc_a, desc_b)
+    return _nearest(desc_a @ desc_b.T, k), _nearest(desc_b @ desc_a.T, k)
 
 
-# Products of at least this many entries are computed by two threads, about half the rows
-# each: a stitch limits BLAS to one thread (pis3r.warmup), and the other core is idle while
-# the photos' descriptors are matched. The split falls on a multiple of SPLIT_ROWS: OpenBLAS
+# The product of every descriptor of a with every one of b (8000 x 8000 float32: 256 MB, paged
+# in afresh by each match) is never held whole: it is computed SCAN_ROWS rows at a time into
+# one buffer per thread, and each block is read for its rows' two nearest and its columns' two
+# largest while it is in cache. From SCAN_SPLIT_ENTRIES entries on, two threads take every
+# other block: a stitch limits BLAS to one thread (pis3r.warmup), and the other core is idle
+# while the photos' descriptors are matched. Blocks start at multiples of SCAN_ROWS: OpenBLAS
 # blocks rows by 48 on the machines measured, and a block of rows starting there is exactly
-# those rows of the whole product; elsewhere entries may differ in their last bit, which
-# the distance floor (DISTANCE_RESOLUTION) absorbs.
-SPLIT_PRODUCT_ENTRIES = 1_000_000
-SPLIT_ROWS = 384
+# those rows of the whole product; elsewhere entries may differ in their last bit, which the
+# distance floor (DISTANCE_RESOLUTION) absorbs.
+SCAN_ROWS = 384
+SCAN_SPLIT_ENTRIES = 1_000_000
 
 
-def _similarity(desc_a: np.ndarray, desc_b: np.ndarray) -> np.ndarray:
-    """``(N, M)`` float32 products of descriptors ``desc_a`` ``(N, 128)`` and ``desc_b`` ``(M, 128)``
-    (``desc_a @ desc_b.T``)."""
-    half = round(len(desc_a) / 2 / SPLIT_ROWS) * SPLIT_ROWS
-    if len(desc_a) * len(desc_b) < SPLIT_PRODUCT_ENTRIES or half == 0:
-        return desc_a @ desc_b.T
-    out = np.empty((len(desc_a), len(desc_b)), np.result_type(desc_a, desc_b))
-    with ThreadPoolExecutor(1) as pool:
-        other = pool.submit(np.matmul, desc_a[half:], desc_b.T, out=out[half:])
-        np.matmul(desc_a[:half], desc_b.T, out=out[:half])
-        other.result()
-    return out
+def _scan_two_nearest(desc_a: np.ndarray, desc_b: np.ndarray):
+    """:func:`_exact_neighbours` for ``k = 2`` from one scan of the product of ``desc_a``
+    ``(N, 128)`` and ``desc_b`` ``(M, 128)``, block by block (``SCAN_ROWS``): each row's two
+    nearest as :func:`_nearest` finds them, each column's two largest products, and from those
+    the way back (:func:`_way_back`)."""
+    rows, columns = len(desc_a), len(desc_b)
+    nearest = np.empty((rows, 2), np.int64)
+    cosine = np.empty((rows, 2), np.result_type(desc_a, desc_b))
+
+    def scan(starts: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        buffer = np.empty((min(SCAN_ROWS, rows), columns), cosine.dtype)
+        largest = np.full(columns, -np.inf, cosine.dtype)
+        second = largest.copy()
+        for start in starts:
+            stop = min(start + SCAN_ROWS, rows)
+            block = np.matmul(desc_a[start:stop], desc_b.T, out=buffer[:stop - start])
+            nearest[start:stop], cosine[start:stop] = _row_two_largest(block)
+            largest, second = _two_largest(largest, second, *_column_two_largest(block))
+        return largest, second
+
+    starts = list(range(0, rows, SCAN_ROWS))
+    if rows * columns < SCAN_SPLIT_ENTRIES:
+        largest, second = scan(starts)
+    else:
+        with ThreadPoolExecutor(1) as pool:
+            other = pool.submit(scan, starts[1::2])
+            largest, second = _two_largest(*scan(starts[0::2]), *other.result())
+    return (_cosine_distance(cosine), nearest), _way_back(nearest[:, 0], cosine[:, 0], largest, second)
 
 
-def _back_of_nearest(similarity: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The way back for ``k = 2`` without a second product: ``(dist (M, 2), idx (M, 2))`` for
-    the columns of ``similarity`` ``(N, M)`` that are some row's ``nearest`` ``(N,)`` and
-    whose nearest row is such a row (the only ones :func:`match` can keep: mutual pairs);
-    index -1 and distance inf elsewhere, and no second index. ``max`` down the columns is
-    fast where ``argmax`` is not: a column's nearest is the first row whose nearest it is
-    and that reaches the column's maximum (exact ties between different descriptors aside),
-    its second best the maximum once that entry is removed."""
-    rows = np.arange(similarity.shape[0])
-    best = similarity[rows, nearest]
-    reaches = best >= similarity.max(axis=0)[nearest]
+def _row_two_largest(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(idx (n, 2), value (n, 2))``: per row of ``block`` ``(n, M)`` its largest entry and the
+    largest once that is removed (two passes of ``argmax``: a partial sort costs seconds for
+    8000 x 8000). ``block`` is left unchanged."""
+    rows = np.arange(len(block))
+    first = block.argmax(axis=1)
+    best = block[rows, first]
+    block[rows, first] = -np.inf
+    second = block.argmax(axis=1)
+    block[rows, first] = best
+    return np.stack([first, second], axis=1), np.stack([best, block[rows, second]], axis=1)
+
+
+def _column_two_largest(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(largest (M,), second (M,))`` of the columns of ``block`` ``(n, M)``: the second is the
+    largest once one entry equal to the largest is removed (the largest again for twins)."""
+    largest = block.max(axis=0)
+    at_largest = block == largest
+    second = np.where(at_largest, -np.inf, block).max(axis=0)
+    return largest, np.where(at_largest.sum(axis=0) > 1, largest, second)
+
+
+def _two_largest(largest_a: np.ndarray, second_a: np.ndarray, largest_b: np.ndarray,
+                 second_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two largest ``(M,)`` of two sets of entries per column, from each set's two largest."""
+    return (np.maximum(largest_a, largest_b),
+            np.maximum(np.maximum(second_a, second_b), np.minimum(largest_a, largest_b)))
+
+
+def _way_back(nearest: np.ndarray, best: np.ndarray, largest: np.ndarray,
+              second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The way back for ``k = 2`` without a second product: ``(dist (M, 2), idx (M, 2))`` for the
+    columns that are some row's ``nearest`` ``(N,)`` (at product ``best`` ``(N,)``) and whose
+    nearest row is such a row (the only ones :func:`match` can keep: mutual pairs); index -1
+    and distance inf elsewhere, and no second index. From each column's ``largest`` and
+    ``second`` product ``(M,)``: a column's nearest is the first row whose nearest it is and
+    that reaches the column's largest (exact ties between different descriptors aside), its
+    second best the column's second largest."""
+    rows = np.arange(len(nearest))
+    reaches = best >= largest[nearest]
     # The first such row of each column, as argmax would pick it.
     columns, first = np.unique(nearest[reaches], return_index=True)
     mutual_rows = rows[reaches][first]
-    dist = np.full((similarity.shape[1], 2), np.inf, np.float32)
-    idx = np.full((similarity.shape[1], 2), -1, np.int64)
+    dist = np.full((len(largest), 2), np.inf, np.float32)
+    idx = np.full((len(largest), 2), -1, np.int64)
     idx[columns, 0] = mutual_rows
     dist[columns, 0] = _cosine_distance(best[mutual_rows])
-    similarity[mutual_rows, columns] = -np.inf
-    second = similarity.max(axis=0)[columns]
-    similarity[mutual_rows, columns] = best[mutual_rows]
-    dist[columns, 1] = _cosine_distance(second)
+    dist[columns, 1] = _cosine_distance(second[columns])
     return dist, idx
 
 
 def _nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """``(dist (N, k), idx (N, k))``: per row of ``similarity`` ``(N, M)`` (cosines of unit-norm
     descriptors, ``M >= k``), the L2 distances and columns of the ``k`` nearest, nearest
-    first. For ``k = 2`` (every plain match) two passes of ``argmax`` instead of a partial
-    sort, which costs seconds for 8000 x 8000. ``similarity`` is left unchanged."""
+    first (a partial sort; ``k = 2`` is :func:`_scan_two_nearest`'s)."""
     rows = np.arange(similarity.shape[0])[:, None]
-    if k == 2:
-        first = similarity.argmax(axis=1)[:, None]
-        best = similarity[rows, first]
-        similarity[rows, first] = -np.inf
-        second = similarity.argmax(axis=1)[:, None]
-        similarity[rows, first] = best
-        idx = np.concatenate([first, second], axis=1)
-    else:
-        part = np.argpartition(-similarity, k - 1, axis=1)[:, :k]
-        idx = np.take_along_axis(part, np.argsort(-similarity[rows, part], axis=1, kind="stable"), axis=1)
+    part = np.argpartition(-similarity, k - 1, axis=1)[:, :k]
+    idx = np.take_along_axis(part, np.argsort(-similarity[rows, part], axis=1, kind="stable"), axis=1)
     return _cosine_distance(similarity[rows, idx]), idx
 
 

@@ -160,35 +160,70 @@ def test_mutual_matching_is_the_two_way_ratio_test_of_opencvs_brute_force_neighb
     assert np.array_equal(found.pts_b, b.points[[j for _, j in expected]])
 
 
-def test_the_way_back_from_one_product_is_the_second_products():
-    """Mutual matching reads the way back from the first product: the same pairs and
+def _unit_rows(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def _two_nearest_by_argmax(similarity: np.ndarray):
+    """The reference: each row's nearest (first of equals) and second, from a whole product."""
+    rows = np.arange(len(similarity))
+    first = similarity.argmax(axis=1)
+    rest = similarity.copy()
+    rest[rows, first] = -np.inf
+    second = rest.argmax(axis=1)
+    return np.stack([first, second], axis=1), np.stack([similarity[rows, first], similarity[rows, second]], axis=1)
+
+
+def test_the_way_back_from_one_scan_is_the_second_products():
+    """Mutual matching reads the way back from the scan of the first product: the same pairs and
     distances as a product of its own, duplicate descriptors included (a column's nearest is
     the first row that reaches it, and its twin is the second best: no match)."""
-    from pis3r.features import Features, _back_of_nearest, _nearest
+    from pis3r.features import Features, _cosine_distance, _exact_neighbours
 
     rng = np.random.default_rng(3)
-
-    def unit(x):
-        return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
-
-    base = unit(np.abs(rng.normal(size=(300, 128))))
+    base = _unit_rows(np.abs(rng.normal(size=(300, 128))))
     desc_a = np.vstack([base[:1], base[:1], base[1:200]])  # rows 0 and 1 are twins
-    desc_b = unit(base[:250] + 0.05 * np.abs(rng.normal(size=(250, 128))))
-    similarity = desc_a @ desc_b.T
-    nearest = _nearest(similarity, 2)[1][:, 0]
-    dist, idx = _back_of_nearest(similarity.copy(), nearest)
-    full_dist, full_idx = _nearest(desc_b @ desc_a.T, 2)
-    mutual = full_idx[nearest, 0] == np.arange(len(desc_a))
-    columns = nearest[mutual]
+    desc_b = _unit_rows(base[:250] + 0.05 * np.abs(rng.normal(size=(250, 128))))
+    (_, nearest), (dist, idx) = _exact_neighbours(desc_a, desc_b, 2)
+    full_idx, full_cosine = _two_nearest_by_argmax(desc_b @ desc_a.T)
+    mutual = full_idx[nearest[:, 0], 0] == np.arange(len(desc_a))
+    columns = nearest[mutual, 0]
     np.testing.assert_array_equal(idx[columns, 0], full_idx[columns, 0])
     # Two float32 products agree to their rounding (BLAS sums each in its own order).
-    np.testing.assert_allclose(dist[columns], full_dist[columns], atol=1e-5)
+    np.testing.assert_allclose(dist[columns], _cosine_distance(full_cosine[columns]), atol=1e-5)
     assert not np.isin(np.flatnonzero(idx[:, 0] >= 0), columns, invert=True).any()
     points_a, points_b = rng.uniform(0, 100, (len(desc_a), 2)), rng.uniform(0, 100, (len(desc_b), 2))
     found = match(Features(points_a, desc_a), Features(points_b, desc_b))
     assert len(found) > 150
     # The twins' column has its second best as close as its best: neither twin matches.
     assert not np.isin(points_a[:2], found.pts_a).all(axis=1).any()
+
+
+def test_the_scan_in_blocks_on_two_threads_is_the_whole_products(monkeypatch):
+    """Blocks of rows, every other one on a second thread, a short last block and twin columns
+    across blocks: each row's two nearest and each column's two largest are the whole product's."""
+    import pis3r.features as features
+
+    rng = np.random.default_rng(5)
+    desc_a = _unit_rows(np.abs(rng.normal(size=(530, 128))))
+    desc_a[301] = desc_a[6]  # a twin row in a block of the other thread: its column's second best
+    desc_b = _unit_rows(desc_a[::3] + 0.05 * np.abs(rng.normal(size=(177, 128))))
+    monkeypatch.setattr(features, "SCAN_ROWS", 96)
+    monkeypatch.setattr(features, "SCAN_SPLIT_ENTRIES", 0)
+    (dist, nearest), (back_dist, back_idx) = features._scan_two_nearest(desc_a, desc_b)
+    similarity = desc_a @ desc_b.T
+    full_idx, full_cosine = _two_nearest_by_argmax(similarity)
+    np.testing.assert_array_equal(nearest, full_idx)
+    np.testing.assert_allclose(dist, features._cosine_distance(full_cosine), atol=1e-5)
+    columns = np.flatnonzero(back_idx[:, 0] >= 0)
+    assert len(columns) > 100
+    np.testing.assert_array_equal(back_idx[columns, 0], similarity[:, columns].argmax(axis=0))
+    second = np.sort(similarity[:, columns], axis=0)[-2]
+    np.testing.assert_allclose(back_dist[columns, 1], features._cosine_distance(second), atol=1e-5)
+    twin_column = nearest[6, 0]
+    # (the twins' products may differ in their last bit: they sit at other places in their blocks)
+    assert back_idx[twin_column, 0] == 6
+    assert back_dist[twin_column, 1] == pytest.approx(back_dist[twin_column, 0], abs=1e-5)
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

@@ -234,7 +234,7 @@ class ClassicalReconstructor:
             attached = False
             for j in sorted(failures):
                 # Match counts are memoised: a later round or call only adds newly paired photos.
-                # Each count's descriptor product is split over both cores (features._similarity).
+                # Each count's descriptor product is scanned on both cores (features._scan_two_nearest).
                 count_keys = {i: ("shared", id(photos[i]), id(photos[j])) for i in pairs}
                 strongest = features[j].sift.strongest(CHAIN_COUNT_FEATURES)
                 for i in [i for i, key in count_keys.items() if key not in self.memo]:
