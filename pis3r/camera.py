@@ -149,49 +149,66 @@ def sampson_distance(F: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray, eps: f
     with homogeneous pixels ``x``. Returns ``(N,)`` float64, NaN where the denominator is 0
     (both epipolar lines degenerate: the points are the epipoles, or ``F = 0``); an ``eps``
     above 0 keeps it finite everywhere, as a least-squares residual must be."""
-    x_a = np.hstack([np.asarray(pts_a, np.float64), np.ones((len(pts_a), 1))])
-    x_b = np.hstack([np.asarray(pts_b, np.float64), np.ones((len(pts_b), 1))])
-    return sampson_homogeneous(F, x_a, x_b, eps)
+    return SampsonPoints(pts_a, pts_b).distance(F, eps)
 
 
-def sampson_homogeneous(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
-    """:func:`sampson_distance` of homogeneous pixels ``x_a``, ``x_b`` ``(N, 3)`` float64
-    (last coordinate 1), for callers that evaluate many ``F`` on the same points."""
-    _, _, algebraic, root = _sampson_terms(F, x_a, x_b)
-    norm = root + eps
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(norm > 0, algebraic / norm, np.nan)
+class SampsonPoints:
+    """Correspondences ``pts_a``, ``pts_b`` ``(N, 2)`` prepared for the Sampson distance
+    (:func:`sampson_distance`) and its derivatives under many ``F``, as a solver evaluates
+    them: each is two or three matrix products over the points (the algebraic error
+    ``x_b^T F x_a`` is the points' outer products ``x_b x_a^T`` ``(N, 9)`` times ``F``), and the
+    terms of the latest ``F`` are kept for its derivatives, which a solver asks for next."""
+
+    def __init__(self, pts_a: np.ndarray, pts_b: np.ndarray) -> None:
+        ones = np.ones((len(pts_a), 1))
+        x_a = np.hstack([np.asarray(pts_a, np.float64), ones])
+        x_b = np.hstack([np.asarray(pts_b, np.float64), ones])
+        self._pixels = np.hstack([x_a, x_b])  # (N, 6)
+        self._outer = (x_b[:, :, None] * x_a[:, None, :]).reshape(-1, 9)
+        self._latest: tuple[bytes, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def _terms(self, F: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(lines (N, 4), algebraic (N,), root (N,))``: the first two coordinates of the
+        epipolar lines ``F x_a`` in b and ``F^T x_b`` in a, ``x_b^T F x_a`` and the root of the
+        lines' squared normals."""
+        F = np.asarray(F, np.float64)
+        key = F.tobytes()
+        if self._latest is None or self._latest[0] != key:
+            lines = self._pixels @ _normal_rows(F[None])[0]
+            root = np.sqrt(np.einsum("ij,ij->i", lines, lines))
+            self._latest = (key, lines, self._outer @ F.ravel(), root)
+        return self._latest[1:]
+
+    def distance(self, F: np.ndarray, eps: float = 0.0) -> np.ndarray:
+        """:func:`sampson_distance` ``(N,)`` of the points under ``F`` ``(3, 3)``."""
+        _, algebraic, root = self._terms(F)
+        norm = root + eps
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(norm > 0, algebraic / norm, np.nan)
+
+    def jacobian(self, F: np.ndarray, dF: np.ndarray, eps: float = 0.0) -> np.ndarray:
+        """``(N, P)``: the derivatives of :meth:`distance` at ``F`` ``(3, 3)`` along each of the
+        ``P`` directions ``dF`` ``(P, 3, 3)`` (``dF[k] = dF / dp_k``): the chain rule, so a
+        solver's Jacobian costs one pass over the points instead of one distance per parameter.
+        Zero where the distance is undefined (both epipolar lines degenerate)."""
+        lines, algebraic, root = self._terms(F)
+        count = len(dF)
+        norm = root + eps
+        d_algebraic = self._outer @ dF.reshape(count, 9).T
+        d_lines = (self._pixels @ _normal_rows(dF).transpose(1, 0, 2).reshape(6, 4 * count)).reshape(-1, count, 4)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d_root = np.einsum("ipk,ik->ip", d_lines, lines) / root[:, None]
+            d = (d_algebraic * norm[:, None] - algebraic[:, None] * d_root) / (norm * norm)[:, None]
+        return np.where(np.isfinite(d), d, 0.0)
 
 
-def _sampson_terms(F: np.ndarray, x_a: np.ndarray, x_b: np.ndarray):
-    """``(lines_b, lines_a, algebraic, root)`` of the Sampson distance of homogeneous pixels
-    ``(N, 3)``: the epipolar lines ``F x_a`` in b and ``F^T x_b`` in a ``(N, 3)``, ``x_b^T F x_a``
-    and the root of the lines' squared normals ``(N,)``."""
-    F = np.asarray(F, np.float64)
-    lines_b = x_a @ F.T
-    lines_a = x_b @ F
-    algebraic = np.einsum("ij,ij->i", x_b, lines_b)
-    root = np.sqrt(lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2)
-    return lines_b, lines_a, algebraic, root
-
-
-def sampson_jacobian(F: np.ndarray, dF: np.ndarray, x_a: np.ndarray, x_b: np.ndarray, eps: float = 0.0) -> np.ndarray:
-    """``(N, P)``: the derivatives of :func:`sampson_homogeneous` of ``F`` ``(3, 3)`` at the
-    homogeneous pixels ``x_a``, ``x_b`` ``(N, 3)`` along each of the ``P`` directions
-    ``dF`` ``(P, 3, 3)`` (``dF[k] = dF / dp_k``): the chain rule, so a solver's Jacobian
-    costs one pass over the points instead of one residual evaluation per parameter.
-    Zero where the Sampson distance is undefined (both epipolar lines degenerate)."""
-    lines_b, lines_a, algebraic, root = _sampson_terms(F, x_a, x_b)
-    norm = root + eps
-    # (P, 3, N): dF_k x_a and dF_k^T x_b for every point (matmul: einsum is slower here).
-    d_lines_b = dF @ x_a.T
-    d_lines_a = dF.transpose(0, 2, 1) @ x_b.T
-    d_algebraic = (d_lines_b * x_b.T).sum(axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d_root = (lines_b[:, 0] * d_lines_b[:, 0] + lines_b[:, 1] * d_lines_b[:, 1]
-                  + lines_a[:, 0] * d_lines_a[:, 0] + lines_a[:, 1] * d_lines_a[:, 1]) / root
-        d = (d_algebraic * norm - algebraic * d_root) / (norm * norm)
-    return np.where(np.isfinite(d), d, 0.0).T
+def _normal_rows(F: np.ndarray) -> np.ndarray:
+    """``(P, 6, 4)``: for each ``F`` ``(P, 3, 3)`` the matrix taking ``[x_a, x_b]`` ``(6,)`` to the
+    first two coordinates of ``F x_a`` and of ``F^T x_b``."""
+    rows = np.zeros((len(F), 6, 4))
+    rows[:, :3, :2] = F[:, :2, :].transpose(0, 2, 1)
+    rows[:, 3:, 2:] = F[:, :, :2]
+    return rows
 
 
 @dataclass(frozen=True)

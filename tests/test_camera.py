@@ -1,7 +1,6 @@
 import numpy as np
 
-from pis3r.camera import (Camera, focal_scaled, fundamental_matrix, intrinsics, sampson_distance, sampson_homogeneous,
-                          sampson_jacobian)
+from pis3r.camera import Camera, SampsonPoints, focal_scaled, fundamental_matrix, intrinsics, sampson_distance
 from tests.analytic import rotation_y
 
 
@@ -54,19 +53,23 @@ def test_sampson_distance_is_signed_and_undefined_only_at_the_epipoles():
 
 def test_sampson_jacobian_is_the_derivative_along_each_direction():
     rng = np.random.default_rng(2)
-    x_a = np.hstack([rng.uniform(0, 640, (40, 2)), np.ones((40, 1))])
-    x_b = np.hstack([rng.uniform(0, 640, (40, 2)), np.ones((40, 1))])
+    pts_a, pts_b = rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2))
+    points = SampsonPoints(pts_a, pts_b)
     F = fundamental_matrix(Camera.identity(intrinsics(500, 640, 480), 640, 480),
                            Camera(intrinsics(520, 640, 480), rotation_y(8), np.array([-1.0, 0.2, 0.1]), 640, 480))
     directions = rng.normal(size=(4, 3, 3)) * np.abs(F)  # each entry moved relative to itself
-    jac = sampson_jacobian(F, directions, x_a, x_b, 1e-12)
+    jac = points.jacobian(F, directions, 1e-12)
     h = 1e-6
-    numeric = np.stack([(sampson_homogeneous(F + h * d, x_a, x_b, 1e-12) - sampson_homogeneous(F - h * d, x_a, x_b, 1e-12))
-                        / (2 * h) for d in directions], 1)
+    numeric = np.stack([(points.distance(F + h * d, 1e-12) - points.distance(F - h * d, 1e-12)) / (2 * h)
+                        for d in directions], 1)
     assert jac.shape == (40, 4)
     np.testing.assert_allclose(jac, numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+    # The terms kept for the latest F are its own: after another F's, F's derivatives are the same.
+    points.distance(2.0 * F + directions[0], 1e-12)
+    np.testing.assert_array_equal(points.jacobian(F, directions, 1e-12), jac)
+    np.testing.assert_allclose(points.distance(F, 1e-12), sampson_distance(F, pts_a, pts_b, 1e-12), rtol=1e-12)
     # Where the distance is undefined (F = 0) the derivative is 0, not NaN.
-    assert not sampson_jacobian(np.zeros((3, 3)), directions, x_a, x_b).any()
+    assert not points.jacobian(np.zeros((3, 3)), directions).any()
 
 
 def test_dict_round_trip():

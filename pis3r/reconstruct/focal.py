@@ -128,9 +128,12 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
         R = cv2.Rodrigues(np.asarray(p[:3], np.float64))[0] @ R0
         return R, focal_scaled(K_a, factor), focal_scaled(K_b, factor)
 
+    # Homogeneous once: the solver evaluates the residuals dozens of times, each parameter moved.
+    pixels_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))])
+
     def transfer(p):
         R, Ka, Kb = unpack(p)
-        projected = np.hstack([matches.pts_a, np.ones((len(matches), 1))]) @ (Kb @ R @ np.linalg.inv(Ka)).T
+        projected = pixels_a @ (Kb @ R @ np.linalg.inv(Ka)).T
         with np.errstate(divide="ignore", invalid="ignore"):
             return projected[:, :2] / projected[:, 2:] - matches.pts_b
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import focal_scaled, intrinsics, pixel_rays, sampson_distance, sampson_homogeneous, sampson_jacobian
+from pis3r.camera import SampsonPoints, focal_scaled, intrinsics, pixel_rays, sampson_distance
 from pis3r.features import Matches
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
@@ -97,6 +97,13 @@ def _skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
 
+def _skews(t: np.ndarray) -> np.ndarray:
+    """``(P, 3, 3)``: the cross-product matrices of the rows of ``t`` ``(P, 3)``."""
+    skews = np.zeros((len(t), 3, 3))
+    skews[:, 0, 1], skews[:, 0, 2], skews[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
+    return skews - skews.transpose(0, 2, 1)
+
+
 @dataclass(frozen=True)
 class PoseFit:
     """A refined relative pose: ``R`` ``(3, 3)``, unit ``t`` ``(3,)`` (``x_b = R x_a + t``),
@@ -140,18 +147,16 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     def prior_residual(p):
         return FOCAL_PRIOR_WEIGHT * scale * (p[5] + prior_offset)
 
-    # Homogeneous once: the solver evaluates the residuals dozens of times.
-    x_a = np.hstack([matches.pts_a, np.ones((len(matches), 1))]).astype(np.float64)
-    x_b = np.hstack([matches.pts_b, np.ones((len(matches), 1))]).astype(np.float64)
+    # The points prepared once: the solver evaluates the residuals dozens of times.
+    points = SampsonPoints(matches.pts_a, matches.pts_b)
 
     def residuals(p):
-        Rm, tv, Ka, Kb = unpack(p)
-        sampson = sampson_homogeneous(_fundamental(Rm, tv, Ka, Kb), x_a, x_b, SAMPSON_EPS)
+        sampson = points.distance(_fundamental(*unpack(p)), SAMPSON_EPS)
         return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
     def jacobian(p):
         F, dF = _fundamental_derivatives(p, R, K_a, K_b, refine_focal)
-        jac = sampson_jacobian(F, dF, x_a, x_b, SAMPSON_EPS)
+        jac = points.jacobian(F, dF, SAMPSON_EPS)
         if not refine_focal:
             return jac
         prior_row = np.zeros((1, len(p)))
@@ -186,29 +191,34 @@ def _pose_parameters(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.nda
 
 def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                              refine_focal: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``F`` ``(3, 3)`` of :func:`refine_pose`'s parameters ``p`` (:func:`_pose_parameters`)
-    and its derivatives ``(len(p), 3, 3)``, in closed form."""
+    """``F`` ``(3, 3)`` of :func:`refine_pose`'s parameters ``p`` (:func:`_pose_parameters`) and
+    its derivatives ``(len(p), 3, 3)``, in closed form. ``F`` is :func:`_fundamental`'s to the
+    bit (the same products in the same order): the Sampson terms of the residuals at ``p`` are
+    reused for its derivatives (:class:`pis3r.camera.SampsonPoints`)."""
     Rm, t, Ka, Kb = _pose_parameters(p, R0, K_a, K_b, refine_focal)
     d_rotation = cv2.Rodrigues(np.asarray(p[:3], np.float64))[1]
     theta, phi = p[3], p[4]
-    d_t = (np.array([np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), -np.sin(theta)]),
-           np.array([-np.sin(theta) * np.sin(phi), np.sin(theta) * np.cos(phi), 0.0]))
+    d_t = np.array([[np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), -np.sin(theta)],
+                    [-np.sin(theta) * np.sin(phi), np.sin(theta) * np.cos(phi), 0.0]])
     left, right = _inverse_intrinsics(Kb).T, _inverse_intrinsics(Ka)
-    E = _skew(t) @ Rm
+    skew_t = _skew(t)
+    E = skew_t @ Rm
+    d_E = np.empty((5, 3, 3))
     # Rodrigues' Jacobian: row k is d vec(R) / d rvec_k, vec row-major.
-    d_E = [_skew(t) @ d_rotation[k].reshape(3, 3) @ R0 for k in range(3)]
-    d_E += [_skew(d) @ Rm for d in d_t]
-    derivatives = [left @ d @ right for d in d_E]
+    d_E[:3] = skew_t @ d_rotation.reshape(3, 3, 3) @ R0
+    d_E[3:] = _skews(d_t) @ Rm
+    derivatives = left @ d_E @ right
     if refine_focal:
         # K(s) = K_0 diag(e^s, e^s, 1): d K^-1 / ds = -diag(1, 1, 0) K^-1.
         drop = np.diag([1.0, 1.0, 0.0])
-        derivatives.append(-(left @ drop) @ E @ right - left @ E @ (drop @ right))
-    return left @ E @ right, np.stack(derivatives)
+        focal = -(left @ drop) @ E @ right - left @ E @ (drop @ right)
+        derivatives = np.concatenate([derivatives, focal[None]])
+    return left @ E @ right, derivatives
 
 
 def _fundamental(R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
     """``F`` ``(3, 3)`` of the pose ``x_b = R x_a + t`` (unit ``t``) between cameras ``K_a``, ``K_b``."""
-    return _inverse_intrinsics(K_b).T @ _skew(t) @ R @ _inverse_intrinsics(K_a)
+    return _inverse_intrinsics(K_b).T @ (_skew(t) @ R) @ _inverse_intrinsics(K_a)
 
 
 def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
