@@ -150,12 +150,20 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     # The points prepared once: the solver evaluates the residuals dozens of times.
     points = SampsonPoints(matches.pts_a, matches.pts_b)
 
+    # The pose of the latest residuals' parameters: the solver asks for its Jacobian next.
+    latest: dict = {}
+
+    def pose_of(p):
+        if latest.get("p") != p.tobytes():
+            latest["p"], latest["pose"] = p.tobytes(), unpack(p)
+        return latest["pose"]
+
     def residuals(p):
-        sampson = points.distance(_fundamental(*unpack(p)), SAMPSON_EPS)
+        sampson = points.distance(_fundamental(*pose_of(p)), SAMPSON_EPS)
         return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
     def jacobian(p):
-        F, dF = _fundamental_derivatives(p, R, K_a, K_b, refine_focal)
+        F, dF = _fundamental_derivatives(p, R, pose_of(p), refine_focal)
         jac = points.jacobian(F, dF, SAMPSON_EPS)
         if not refine_focal:
             return jac
@@ -189,13 +197,14 @@ def _pose_parameters(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.nda
     return R, t, focal_scaled(K_a, factor), focal_scaled(K_b, factor)
 
 
-def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
-                             refine_focal: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``F`` ``(3, 3)`` of :func:`refine_pose`'s parameters ``p`` (:func:`_pose_parameters`) and
-    its derivatives ``(len(p), 3, 3)``, in closed form. ``F`` is :func:`_fundamental`'s to the
-    bit (the same products in the same order): the Sampson terms of the residuals at ``p`` are
-    reused for its derivatives (:class:`pis3r.camera.SampsonPoints`)."""
-    Rm, t, Ka, Kb = _pose_parameters(p, R0, K_a, K_b, refine_focal)
+def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, pose: tuple, refine_focal: bool
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """``F`` ``(3, 3)`` of :func:`refine_pose`'s parameters ``p`` and their ``pose``
+    (:func:`_pose_parameters` of ``p`` and ``R0``) and its derivatives ``(len(p), 3, 3)``, in
+    closed form. ``F`` is :func:`_fundamental`'s to the bit (the same products in the same
+    order): the Sampson terms of the residuals at ``p`` are reused for its derivatives
+    (:class:`pis3r.camera.SampsonPoints`)."""
+    Rm, t, Ka, Kb = pose
     d_rotation = cv2.Rodrigues(np.asarray(p[:3], np.float64))[1]
     theta, phi = p[3], p[4]
     d_t = np.array([[np.cos(theta) * np.cos(phi), np.cos(theta) * np.sin(phi), -np.sin(theta)],

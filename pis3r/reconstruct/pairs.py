@@ -328,9 +328,9 @@ def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size
                                                                     seen_focal(hypothesis.ratio)))
         if seen is None:
             if plane_only:
-                # A plane tells nothing about the focal: take the prior, not where the fit drifted.
-                K_a, K_b = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
-                fit = geometry.refine_pose(inliers, fit.R, fit.t, K_a, K_b)
+                # A plane tells nothing about the focal: refit at the prior, once for every model that asks.
+                prior = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
+                fit = remember((*key, "prior"), lambda fit=fit: geometry.refine_pose(inliers, fit.R, fit.t, *prior))
             why = ("the matches lie on one plane" if plane_only else
                    f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
             return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
