@@ -138,10 +138,8 @@ class ClassicalReconstructor:
 
         def view_with_reference(j: int) -> View | Pis3rError:
             try:
-                if j in scales:
-                    view_j = self._views(ref, photos[j], pairs[j], None, scales[j])[1]
-                else:
-                    view_j = self._views(ref, photos[j], pairs[j], registered[0].depth)[1]
+                depth = None if j in scales else registered[0].depth
+                view_j = self._views(ref, photos[j], pairs[j], depth, scales.get(j))[1]
                 return self._placed(view_j, pairs[j], photos[j], ref, 0)
             except Pis3rError as exc:
                 return exc

@@ -97,13 +97,6 @@ def _skew(t: np.ndarray) -> np.ndarray:
     return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
 
-def _skews(t: np.ndarray) -> np.ndarray:
-    """``(P, 3, 3)``: the cross-product matrices of the rows of ``t`` ``(P, 3)``."""
-    skews = np.zeros((len(t), 3, 3))
-    skews[:, 0, 1], skews[:, 0, 2], skews[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    return skews - skews.transpose(0, 2, 1)
-
-
 @dataclass(frozen=True)
 class PoseFit:
     """A refined relative pose: ``R`` ``(3, 3)``, unit ``t`` ``(3,)`` (``x_b = R x_a + t``),
@@ -150,20 +143,12 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     # The points prepared once: the solver evaluates the residuals dozens of times.
     points = SampsonPoints(matches.pts_a, matches.pts_b)
 
-    # The pose of the latest residuals' parameters: the solver asks for its Jacobian next.
-    latest: dict = {}
-
-    def pose_of(p):
-        if latest.get("p") != p.tobytes():
-            latest["p"], latest["pose"] = p.tobytes(), unpack(p)
-        return latest["pose"]
-
     def residuals(p):
-        sampson = points.distance(_fundamental(*pose_of(p)), SAMPSON_EPS)
+        sampson = points.distance(_fundamental(*unpack(p)), SAMPSON_EPS)
         return np.append(sampson, prior_residual(p)) if refine_focal else sampson
 
     def jacobian(p):
-        F, dF = _fundamental_derivatives(p, R, pose_of(p), refine_focal)
+        F, dF = _fundamental_derivatives(p, R, unpack(p), refine_focal)
         jac = points.jacobian(F, dF, SAMPSON_EPS)
         if not refine_focal:
             return jac
@@ -215,7 +200,7 @@ def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, pose: tuple, refine_
     d_E = np.empty((5, 3, 3))
     # Rodrigues' Jacobian: row k is d vec(R) / d rvec_k, vec row-major.
     d_E[:3] = skew_t @ d_rotation.reshape(3, 3, 3) @ R0
-    d_E[3:] = _skews(d_t) @ Rm
+    d_E[3:] = np.stack([_skew(d) for d in d_t]) @ Rm
     derivatives = left @ d_E @ right
     if refine_focal:
         # K(s) = K_0 diag(e^s, e^s, 1): d K^-1 / ds = -diag(1, 1, 0) K^-1.

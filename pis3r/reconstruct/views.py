@@ -85,6 +85,7 @@ def views_3d(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[t
     return (filled_view(ref, img_a, meas_a, camera_a, depth_fill, deferred=True),
             filled_view(other, img_b, meas_b, camera_b, depth_fill), unfilled_a)
 
+
 def flows(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[tuple, Callable], Any]) -> Deferred:
     """The pair's flows (:func:`pis3r.reconstruct.dense.pair_flows`) at the working size, as
     kept in the reconstruction's memo: found on their first read, which may be on another
