@@ -209,7 +209,7 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "model_choice": choice.to_dict(),
         "ref_index": ref_index,
         "parallax": parallax.to_dict(),
-        "focal": {"value": scene.focal, "source": scene.focal_source},
+        "focal": scene.focal_summary(),
         "matches": scene.info.get("num_matches"),
         "inliers": scene.info.get("num_inliers"),
         "seconds": {name: round(value, 4) for name, value in result.seconds.items()},

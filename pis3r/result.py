@@ -52,6 +52,7 @@ class StitchResult:
             "ref_offset": [int(self.ref_offset[0]), int(self.ref_offset[1])],
             "ref_index": self.ref_index,
             "convention": CAMERA_CONVENTION,
+            "focal": self.scene.focal_summary(),
             "inputs": [
                 {"index": index, "name": view.name, **view.camera.to_dict()}
                 for index, view in zip(self.scene.indices, self.scene.views)

@@ -13,6 +13,7 @@ from pis3r.camera import Camera
 
 if TYPE_CHECKING:
     from pis3r.parallax import ParallaxEstimate
+    from pis3r.reconstruct.focal import FocalInterval
     from pis3r.reconstruct.local_warp import LocalWarp
 
 
@@ -156,6 +157,9 @@ class Scene:
     cameras and plane, the other views placed by local homographies: :attr:`View.warp`), with
     ``model_reason``;
     ``focal`` (pixels, of the first photo) and ``focal_source``: where it came from;
+    ``focal_interval``: the focals the evidence cannot tell apart
+    (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None`` where not measured: a known focal
+    refined over several views, or a learned backend);
     ``parallax``: the pair's parallax estimate when the backend measured it; ``warnings``:
     one line each, for the user. ``info``: report-only extras (match counts, details).
     """
@@ -167,6 +171,7 @@ class Scene:
     model_reason: str = ""
     focal: float | None = None
     focal_source: str = ""
+    focal_interval: "FocalInterval | None" = None
     parallax: "ParallaxEstimate | None" = None
     warnings: tuple[str, ...] = ()
     info: dict = field(default_factory=dict)
@@ -179,6 +184,19 @@ class Scene:
 
     def __len__(self) -> int:
         return len(self.views)
+
+    def focal_summary(self) -> dict:
+        """What ``report.json`` and ``camera.json`` say of the reference's focal: ``value`` (px),
+        ``source``, ``interval_px`` (``[low, high]``, or ``None`` where not measured),
+        ``determined`` (whether the photos pin it: the interval within 1.25 x of it either way;
+        ``None`` where not measured) and ``rotation_spread_deg`` (how far the relative rotation
+        moves across the interval: the pose's confidence as far as the focal goes)."""
+        interval = self.focal_interval
+        summary = {"value": self.focal, "source": self.focal_source, "interval_px": None, "determined": None,
+                   "rotation_spread_deg": None}
+        if interval is not None and self.focal is not None:
+            summary.update(interval.to_dict(), determined=interval.determined(self.focal))
+        return summary
 
     def in_input_order(self, order: list[int]) -> "Scene":
         """A new scene numbered by input index: the backend received photo ``order[k]`` as its ``k``-th;

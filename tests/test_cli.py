@@ -74,6 +74,14 @@ def check_outputs(outdir: Path, ref_image: np.ndarray):
     report = json.loads((outdir / "report.json").read_text())
     for key in ("backend", "parallax", "focal", "matches", "inliers", "seconds", "canvas", "fractions", "warnings"):
         assert key in report
+    # The focal and how sure it is, the same in both files; a loose one always comes with its warning.
+    focal = report["focal"]
+    assert camera["focal"] == focal and set(focal) == {"value", "source", "interval_px", "determined",
+                                                       "rotation_spread_deg"}
+    low, high = focal["interval_px"]
+    assert low <= round(focal["value"], 1) <= high
+    assert focal["determined"] == (low * 1.25 >= focal["value"] * (1 - 1e-6) and high <= focal["value"] * 1.25 * (1 + 1e-6))
+    assert focal["determined"] or any("do not determine the focal length" in w for w in report["warnings"])
     assert not list(outdir.glob("*.tmp"))
     return camera, report
 

@@ -5,12 +5,14 @@ from __future__ import annotations
 import csv
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from pis3r.cli import main
 from pis3r.eval.poses import MISSING_TRANSLATION_DEG, medians
 from pis3r.io import write_png
 from tests.analytic import planes_scene, render, two_view_cameras
+from tests.conftest import REAL, needs_real_data
 
 
 def calibrated_pair(folder, image_a, image_b, camera_a, camera_b):
@@ -45,7 +47,45 @@ def test_pose_only_tables_every_calibrated_pair(tmp_path):
 
 
 def test_medians_are_over_the_reconstructed_pairs():
-    rows = [{"refused": "", "rotation_error_deg": 1.0, "translation_error_deg": MISSING_TRANSLATION_DEG},
-            {"refused": "", "rotation_error_deg": 3.0, "translation_error_deg": 2.0},
+    rows = [{"refused": "", "rotation_error_deg": 1.0, "translation_error_deg": MISSING_TRANSLATION_DEG,
+             "focal": 700.0, "gt_focal": 1000.0, "determined": True},
+            {"refused": "", "rotation_error_deg": 9.0, "translation_error_deg": 2.0,
+             "focal": 500.0, "gt_focal": 1000.0, "determined": False},
+            {"refused": "", "rotation_error_deg": 3.0, "translation_error_deg": 3.0,
+             "focal": 800.0, "gt_focal": 1000.0, "determined": True},
             {"refused": "too few matches", "rotation_error_deg": np.nan, "translation_error_deg": np.nan}]
-    assert medians(rows) == {"rotation_error_deg": 2.0, "translation_error_deg": 46.0, "reconstructed": 2, "pairs": 3}
+    # The first focal is 30 % off and called determined; the second is as far off, honestly not.
+    assert medians(rows) == {"rotation_error_deg": 3.0, "translation_error_deg": 3.0, "reconstructed": 3, "pairs": 4,
+                             "failed": 1, "wrongly_determined": 1}
+
+
+@pytest.mark.slow
+@needs_real_data
+def test_calibrated_scenes_cameras_and_honest_focals(tmp_path):
+    """``--pose-only`` over every neighbouring and distant pair of Herz-Jesus (a facade: the
+    matches pin the focal) and of templeR 13-19 and 25 (a turntable: the optical axes meet,
+    two views leave the focal free). No focal more than 25 % off may be called determined."""
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "strecha-Herz-Jesus-P8").symlink_to(REAL / "strecha-Herz-Jesus-P8")
+    temple = data / "middlebury-templeRing" / "images"
+    temple.mkdir(parents=True)
+    (temple.parent / "templeR_par.txt").symlink_to(REAL / "middlebury-templeRing" / "templeR_par.txt")
+    for view in (*range(13, 20), 25):
+        (temple / f"templeR{view:04d}.png").symlink_to(REAL / "middlebury-templeRing" / "images" / f"templeR{view:04d}.png")
+
+    result = CliRunner().invoke(main, ["eval", str(data), "-o", str(tmp_path / "out"), "--pose-only", "--crop", "1"])
+    assert result.exit_code == 0, result.output
+    table = csv.DictReader((tmp_path / "out" / "poses.csv").open())
+    numbers = ("focal", "gt_focal", "rotation_error_deg", "translation_error_deg", "focal_low", "focal_high")
+    rows = [{**row, **{key: float(row[key]) for key in numbers}, "determined": row["determined"] == "True"}
+            for row in table if not row["refused"]]
+    facade = [r for r in rows if r["case"].startswith("strecha")]
+    turntable = [r for r in rows if r["case"].startswith("middlebury")]
+    # 7 neighbours, 5 three apart (2-5 among them) and the crop protocol's 0-7 (3-4 is a neighbour).
+    assert len(facade) == 13 and len(turntable) >= 10
+    assert all(r["determined"] and abs(r["focal"] / r["gt_focal"] - 1) < 0.1 for r in facade)
+    assert np.median([r["rotation_error_deg"] for r in facade]) < 0.5
+    assert all(not r["determined"] and r["warnings"] != "0" for r in turntable)
+    assert all(r["focal_low"] <= r["gt_focal"] <= r["focal_high"] for r in turntable)
+    assert medians(rows)["wrongly_determined"] == 0 and "0 with a focal more than 25% off" in result.output

@@ -11,7 +11,8 @@ import pis3r
 from pis3r.features import Matches
 from pis3r.reconstruct.joint import refine_jointly
 from pis3r.reconstruct.tracks import match_tracks
-from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
+from pis3r.reconstruct.pairs import PairGeometry
 
 from .conftest import REAL, needs_real_data
 

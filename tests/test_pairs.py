@@ -100,7 +100,8 @@ def test_a_plane_seen_with_a_baseline_exports_its_translation():
 def test_a_focal_a_plane_leaves_free_is_the_prior_with_a_warning():
     a, b, _, _ = facade_pair([-1.5, 0.2, 0.5], -8.0)
     pair = ClassicalReconstructor(ReconstructOptions()).cameras(a, b)
-    assert pair.K_a[0, 0] == pytest.approx(1.2 * 480) and pair.focal_source.startswith("prior-dominated")
+    assert pair.K_a[0, 0] == pytest.approx(1.2 * 480) and pair.focal_source.startswith("prior")
+    assert not pair.focal_determined and pair.focal_interval.high / pair.focal_interval.low > 10
     assert any("do not determine the focal length (the matches lie on one plane)" in w for w in pair.warnings)
 
 
@@ -158,11 +159,13 @@ def test_models_of_one_pair_share_its_essential_fits(monkeypatch):
     each computes alone."""
     import pis3r.reconstruct.classical as classical
     import pis3r.reconstruct.pairs as pairs
+    import pis3r.reconstruct.self_calibration as self_calibration
 
     a, b, _, _ = facade_pair([-1.5, 0.2, 1.5], -12.0)
     calls, matchings, levels = [], [], []
-    best_essential, matching, level = pairs._best_essential, classical.consistent_matches, pairs.parallax_from_matches
-    monkeypatch.setattr(pairs, "_best_essential", lambda *args: calls.append(1) or best_essential(*args))
+    best_essential, matching, level = (self_calibration.best_essential, classical.consistent_matches,
+                                       pairs.parallax_from_matches)
+    monkeypatch.setattr(self_calibration, "best_essential", lambda *args: calls.append(1) or best_essential(*args))
     monkeypatch.setattr(classical, "consistent_matches", lambda *args: matchings.append(1) or matching(*args))
     monkeypatch.setattr(pairs, "parallax_from_matches", lambda *args: levels.append(1) or level(*args))
     alone = ClassicalReconstructor(ReconstructOptions(model="3d")).cameras(a, b)
@@ -183,8 +186,8 @@ def test_models_of_one_rotation_share_its_rotation_fit(monkeypatch):
 
     a, b, _ = rotation_photos()
     calls = []
-    rotation = pairs._rotation
-    monkeypatch.setattr(pairs, "_rotation", lambda *args: calls.append(1) or rotation(*args))
+    rotation = pairs.rotation_fit
+    monkeypatch.setattr(pairs, "rotation_fit", lambda *args: calls.append(1) or rotation(*args))
     memo = {}
     homography, apap = (ClassicalReconstructor(ReconstructOptions(model=model), memo).cameras(a, b)
                         for model in ("homography", "apap"))

@@ -80,4 +80,4 @@ def test_a_focal_the_matches_leave_free_comes_from_the_edges_of_both_photos():
     assert rotation_angle_deg(pair.R @ R_gt.T) < 0.5
     # Without straight edges the same geometry falls back on the prior, with its warning.
     plain = ClassicalReconstructor(ReconstructOptions()).cameras(*orbit_pair(tiles=False)[:2])
-    assert plain.focal_source.startswith("prior-dominated")
+    assert plain.focal_source.startswith("matches and prior together") and not plain.focal_determined

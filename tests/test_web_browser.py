@@ -88,6 +88,11 @@ def test_upload_stitch_show_download(server, browser, small_pair, tmp_path):
     assert "Done" in browser.find_element(By.ID, "message").text
     assert len(browser.find_elements(By.CSS_SELECTOR, "#inputs img")) == 2
     assert browser.find_element(By.ID, "parallax").text.startswith("Parallax: ")
+    # Two crops of one photo: a shift, which no focal explains better than another. The page says so.
+    focal = browser.find_element(By.ID, "focal").text
+    assert focal.startswith("Focal 228 px (prior") and "57–1140 px fit" in focal
+    assert focal.endswith("not determined by these photos")
+    assert "do not determine the focal length" in browser.find_element(By.ID, "message").text
 
     browser.find_element(By.ID, "download-stitched-png").click()
     target = tmp_path / "downloads" / "stitched.png"

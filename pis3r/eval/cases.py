@@ -190,6 +190,10 @@ CALIBRATED_PAIRS = {
     "middlebury-templeRing": ((13, 14, 0.13), (13, 16, 0.40), (13, 19, 0.77), (13, 25, 1.43)),
 }
 SLIGHT_MAX_BASELINE_OVER_DEPTH = 0.2
+# ``--pose-only`` judges the cameras on more pairs of each calibrated scene than the crop
+# protocol renders: every view with its next one (neighbours) and with the one this many
+# further on (distant), besides CALIBRATED_PAIRS.
+DISTANT_VIEW_STEP = 3
 
 
 @dataclass(frozen=True)
@@ -208,9 +212,10 @@ class CaseSpec:
     view_b: int = -1
 
 
-def discover_cases(root: str | Path) -> list[CaseSpec]:
+def discover_cases(root: str | Path, every_view_pair: bool = False) -> list[CaseSpec]:
     """Every case under ``root``, sorted by name: ``pis3r synth`` pair folders (any depth),
-    pair folders (``ref.*`` + ``tgt.*``) and the calibrated scenes of ``CALIBRATED_PAIRS``.
+    pair folders (``ref.*`` + ``tgt.*``) and the calibrated scenes of ``CALIBRATED_PAIRS``
+    (with ``every_view_pair``, also :func:`view_pairs`: for judging cameras, not pictures).
     Parallax classes of pair folders come from a ``SOURCES.md`` in ``root`` if present."""
     root = Path(root)
     if not root.is_dir():
@@ -225,6 +230,10 @@ def discover_cases(root: str | Path) -> list[CaseSpec]:
                 parallax_class = "slight" if level <= SLIGHT_MAX_BASELINE_OVER_DEPTH else "large"
                 specs.append(CaseSpec(f"{name}/{a}-{b}", root.name, "calibrated", str(folder), parallax_class,
                                       level, a, b))
+            listed = {(a, b) for a, b, _ in CALIBRATED_PAIRS[folder.name]}
+            if every_view_pair:
+                specs += [CaseSpec(f"{name}/{a}-{b}", root.name, "calibrated", str(folder), UNKNOWN_CLASS,
+                                   math.nan, a, b) for a, b in view_pairs(folder) if (a, b) not in listed]
         elif is_pair_dir(folder) and find_image(folder, "gt") is not None:
             info = json.loads((folder / "case.json").read_text())
             specs.append(CaseSpec(name, root.name, "synth", str(folder), info["parallax_class"],
@@ -236,6 +245,14 @@ def discover_cases(root: str | Path) -> list[CaseSpec]:
     if not specs:
         raise InputError(f"{root}: no cases (pair folders with ref.* and tgt.*, or `pis3r synth` output)")
     return specs
+
+
+def view_pairs(folder: Path) -> list[tuple[int, int]]:
+    """The neighbouring and the distant (``DISTANT_VIEW_STEP`` apart) view pairs of a
+    calibrated scene, by the view numbers of its images."""
+    views = sorted(int("".join(filter(str.isdigit, path.stem))) for path in (Path(folder) / "images").iterdir()
+                   if path.suffix.lower() in IMAGE_SUFFIXES)
+    return [(views[i], views[i + step]) for step in (1, DISTANT_VIEW_STEP) for i in range(len(views) - step)]
 
 
 def load_case(spec: CaseSpec, crop: float = 0.6) -> EvalCase:

@@ -29,7 +29,9 @@ DEFAULT_METHODS = "pis3r,opencv,opencv-scans,stitching,apap"
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--pose-only", is_flag=True,
               help="Only reconstruct (classical backend, no rendering): the exported cameras against the GT "
-                   "cameras of every case that has them; prints a table, writes OUTDIR/poses.md and poses.csv.")
+                   "cameras of every case that has them (of calibrated scenes: every pair of neighbouring "
+                   "views and of views three apart too), with the focal found, its source and the interval "
+                   "of focals the photos cannot tell apart; prints a table, writes OUTDIR/poses.md and poses.csv.")
 def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet, pose_only):
     """Evaluate stitchers on DATA: a `pis3r synth` output or a folder of pair folders
     (ref.*, tgt.*; the crop protocol makes their ground truth). Finished case x method
@@ -40,7 +42,8 @@ def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, quiet
     if pose_only:
         from pis3r.eval.poses import evaluate_pose, format_table, write_pose_report
 
-        rows = [row for row in (evaluate_pose(spec, crop) for spec in discover_cases(data)) if row is not None]
+        specs = discover_cases(data, every_view_pair=True)
+        rows = [row for row in (evaluate_pose(spec, crop) for spec in specs) if row is not None]
         if not rows:
             raise InputError(f"{data}: no case has GT cameras")
         click.echo(format_table(rows))

@@ -2,11 +2,11 @@
 the GT cameras of every case that has them, without rendering anything.
 
 One row per case: relative rotation error and translation-direction error (degrees,
-:func:`pis3r.eval.geometry.pose_error`), the reference focal found vs the GT one, the model,
-the features used, the epipolar inliers, how many warnings the cameras came with (a focal
-the views do not determine, an implausible one, few inliers), and the refusal if the pair
-was refused. Medians are over the pairs that
-were reconstructed; an exported pure rotation (no translation) of a pair whose GT cameras
+:func:`pis3r.eval.geometry.pose_error`), the reference focal found vs the GT one with the
+interval of focals the photos cannot tell apart, whether that makes it determined and its
+source, the model, the features used, the epipolar inliers, how many warnings the cameras
+came with (a focal the views do not determine, an implausible one, few inliers), and the
+refusal if the pair was refused. Medians are over the pairs that were reconstructed; an exported pure rotation (no translation) of a pair whose GT cameras
 have a baseline counts 90 deg of translation error there (an unknown direction is as far
 off as that on average), not a missing value.
 """
@@ -26,8 +26,12 @@ from pis3r.eval.cases import CaseSpec, load_case
 from pis3r.eval.geometry import pose_error
 from pis3r.io import Photo, write_bytes
 
-COLUMNS = ("case", "rotation_error_deg", "translation_error_deg", "focal", "gt_focal", "model", "features",
-           "inliers", "warnings", "seconds", "refused")
+COLUMNS = ("case", "rotation_error_deg", "translation_error_deg", "focal", "gt_focal", "focal_low", "focal_high",
+           "determined", "focal_source", "model", "features", "inliers", "warnings", "seconds", "refused")
+# A focal this far (relative) from the GT's is wrong: the table counts those reported as determined.
+WRONG_FOCAL = 0.25
+# A rotation this far (deg) from the GT's counts as a failed pair.
+FAILED_ROTATION_DEG = 5.0
 # Translation-direction error counted for a rotation exported where the GT has a baseline.
 MISSING_TRANSLATION_DEG = 90.0
 
@@ -51,11 +55,15 @@ def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
     if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
         errors["translation_error_deg"] = MISSING_TRANSLATION_DEG
     return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model, "features": pair.info["features"],
-            "inliers": pair.info["num_inliers"], "warnings": len(pair.warnings), "seconds": time.perf_counter() - start}
+            "inliers": pair.info["num_inliers"], "warnings": len(pair.warnings), "focal_source": pair.focal_source,
+            "focal_low": pair.focal_interval.low, "focal_high": pair.focal_interval.high,
+            "determined": pair.focal_determined, "seconds": time.perf_counter() - start}
 
 
 def medians(rows: list[dict]) -> dict:
-    """Median rotation and translation-direction errors over the reconstructed rows, and counts."""
+    """Median rotation and translation-direction errors over the reconstructed rows, and counts:
+    ``failed``, rotations more than ``FAILED_ROTATION_DEG`` off; ``wrongly_determined``, focals
+    more than ``WRONG_FOCAL`` off the GT's that the row calls determined by the photos."""
     done = [r for r in rows if not r["refused"]]
 
     def median(key):
@@ -64,12 +72,17 @@ def medians(rows: list[dict]) -> dict:
 
     return {"rotation_error_deg": median("rotation_error_deg"),
             "translation_error_deg": median("translation_error_deg"),
-            "reconstructed": len(done), "pairs": len(rows)}
+            "reconstructed": len(done), "pairs": len(rows),
+            "failed": sum(r["rotation_error_deg"] > FAILED_ROTATION_DEG for r in done),
+            "wrongly_determined": sum(bool(r.get("determined")) and abs(r["focal"] / r["gt_focal"] - 1) > WRONG_FOCAL
+                                      for r in done)}
 
 
 # Columns of the printed table: title, row key, cell format (right-aligned to the title).
 TABLE = (("rot °", "rotation_error_deg", "{:.2f}"), ("trans °", "translation_error_deg", "{:.2f}"),
-         ("focal", "focal", "{:.0f}"), ("GT focal", "gt_focal", "{:.0f}"), ("model", "model", "{}"),
+         ("focal", "focal", "{:.0f}"), ("GT focal", "gt_focal", "{:.0f}"), ("low", "focal_low", "{:.0f}"),
+         ("high", "focal_high", "{:.0f}"), ("determined", "determined", "{}"), ("source", "focal_source", "{:.14}"),
+         ("model", "model", "{}"),
          ("features", "features", "{}"), ("inliers", "inliers", "{}"), ("warnings", "warnings", "{}"),
          ("s", "seconds", "{:.1f}"))
 
@@ -77,7 +90,7 @@ TABLE = (("rot °", "rotation_error_deg", "{:.2f}"), ("trans °", "translation_e
 def format_table(rows: list[dict]) -> str:
     """The per-pair table and the medians as aligned text (also valid Markdown)."""
     width = max([len(r["case"]) for r in rows] + [4])
-    sizes = [max(len(title), {"model": 10, "seconds": 5}.get(key, 0)) for title, key, _ in TABLE]
+    sizes = [max(len(title), {"model": 10, "seconds": 5, "focal_source": 14}.get(key, 0)) for title, key, _ in TABLE]
     lines = ["| " + " | ".join([f"{'case':{width}s}", *(f"{t:>{n}s}" for (t, _, _), n in zip(TABLE, sizes)),
                                 "refused"]) + " |",
              "|" + "|".join(["-" * (width + 2), *("-" * (n + 1) + ":" for n in sizes), "-" * 9]) + "|"]
@@ -88,7 +101,9 @@ def format_table(rows: list[dict]) -> str:
                                         r["refused"]]) + " |")
     summary = medians(rows)
     lines += ["", f"median over {summary['reconstructed']} reconstructed of {summary['pairs']} pairs: rotation "
-              f"{summary['rotation_error_deg']:.2f}°, translation direction {summary['translation_error_deg']:.2f}°"]
+              f"{summary['rotation_error_deg']:.2f}°, translation direction {summary['translation_error_deg']:.2f}°; "
+              f"{summary['failed']} more than {FAILED_ROTATION_DEG:g}° off; {summary['wrongly_determined']} with a "
+              f"focal more than {WRONG_FOCAL:.0%} off called determined"]
     return "\n".join(lines)
 
 

@@ -205,7 +205,8 @@ class ClassicalReconstructor:
             model, reason = "apap", f"{reason}; the views placed by local homographies (APAP's moving DLT)"
         return Scene(
             [registered[i] for i in indices], indices, dropped, model=model, model_reason=reason,
-            focal=float(first.K_a[0, 0]), focal_source=first.focal_source, parallax=first.parallax,
+            focal=float(first.K_a[0, 0]), focal_source=first.focal_source, focal_interval=first.focal_interval,
+            parallax=first.parallax,
             warnings=tuple(warnings),
             info={"backend": self.name, "num_matches": first.num_matches, **first.info,
                   **({"joint_refinement": joint.to_dict()} if joint else {})},

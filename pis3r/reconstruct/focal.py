@@ -1,5 +1,5 @@
-"""Focal length of two views: hypotheses, the prior, a rotation's focal (Brown–Lowe) and
-how to say that a focal is doubtful.
+"""Focal length of two views: hypotheses, the prior, a rotation's focal (Brown–Lowe), the
+interval of focals the matches cannot tell apart, and how to say that a focal is doubtful.
 
 Pixel coordinates follow the OpenCV convention; ``K`` is ``(3, 3)`` with the principal point
 at the image centre (:func:`pis3r.camera.intrinsics`).
@@ -7,7 +7,9 @@ at the image centre (:func:`pis3r.camera.intrinsics`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -23,6 +25,105 @@ FALLBACK_FOCAL_FACTOR = 1.2
 # Focal / longest side of ordinary lenses (about 19 to 90 deg across the longest side):
 # a self-calibrated focal outside is reported, since the cameras then are likely wrong.
 PLAUSIBLE_FOCAL = (0.5, 3.0)
+# The focal's interval: the focals whose fit (pose re-fitted at each) costs at most
+# FOCAL_BOUND more than the fitted focal's (robust Cauchy cost at 1 px per 1024 px: about
+# what a dozen matches 1 px off their lines cost), probed outward in steps of PROFILE_STEP
+# up to LENS_REACH times the longest side, where it ends when the matches do not bound it.
+# Matches are not noise alone (a turntable's pair costs 8 more at its true focal than at a
+# third of it): a bound they draw must be clear. The weaker FOCAL_EVIDENCE (about three
+# matches 1 px off) is what the fitted focal must win by at PROFILE_STEP either way for the
+# matches to be said to prefer it.
+FOCAL_BOUND = 10.0
+FOCAL_EVIDENCE = 2.5
+PROFILE_STEP = 1.25
+LENS_REACH = (0.3, 6.0)
+# A focal counts as determined by the photos when its interval lies within this factor of it
+# either way; wider, every estimator's value comes with a warning.
+DETERMINED_FACTOR = 1.25
+# How the warning of a focal the photos leave loose begins (more views may fix it).
+UNDETERMINED_FOCAL = "these two views do not determine the focal length"
+
+
+@dataclass(frozen=True)
+class FocalInterval:
+    """The reference focals (px) ``low`` to ``high`` that the evidence cannot tell apart;
+    ``rotation_spread_deg``: how far the relative rotation moves across them (the pose's
+    dependence on the focal: 0 where the focal is exact or does not move it); ``preferred``:
+    whether the matches prefer the fitted focal to ``PROFILE_STEP`` times it either way by
+    ``FOCAL_EVIDENCE`` (a minimum, however shallow)."""
+
+    low: float
+    high: float
+    rotation_spread_deg: float = 0.0
+    preferred: bool = True
+
+    @staticmethod
+    def exact(focal: float) -> "FocalInterval":
+        return FocalInterval(focal, focal)
+
+    @staticmethod
+    def of_lenses(width: int, height: int) -> "FocalInterval":
+        """What nothing but the lens range says: ``LENS_REACH`` times the longest side."""
+        side = max(width, height)
+        return FocalInterval(LENS_REACH[0] * side, LENS_REACH[1] * side, preferred=False)
+
+    def determined(self, focal: float) -> bool:
+        """Whether the interval lies within ``DETERMINED_FACTOR`` of ``focal`` both ways."""
+        slack = 1 + 1e-9
+        return self.low * DETERMINED_FACTOR * slack >= focal and self.high <= focal * DETERMINED_FACTOR * slack
+
+    def clamp(self, focal: float) -> float:
+        return float(min(max(focal, self.low), self.high))
+
+    def spanning(self, focal: float) -> "FocalInterval":
+        """The interval widened to hold ``focal`` too."""
+        return replace(self, low=min(self.low, focal), high=max(self.high, focal))
+
+    def to_dict(self) -> dict:
+        return {"interval_px": [round(self.low, 1), round(self.high, 1)],
+                "rotation_spread_deg": round(self.rotation_spread_deg, 3)}
+
+
+def focal_interval(focal: float, side: int, cost_along: Callable[[int], Callable[[float], tuple[float, float]]]
+                   ) -> FocalInterval:
+    """The :class:`FocalInterval` around a fitted reference ``focal`` (px) of a photo whose
+    longest side is ``side``. ``cost_along(direction)`` (``+1`` longer, ``-1`` shorter) gives a
+    function of a factor that returns the fit's rise of cost over the fitted focal's at
+    ``focal * factor`` and the rotation's change (degrees) there; it is called with powers of
+    ``PROFILE_STEP`` in turn (each fit may start from the one before), until the rise reaches
+    ``FOCAL_BOUND`` or the factor leaves ``LENS_REACH``. Each end is where the rise crosses it
+    (log-linear between probes), or the reach's end where it never does."""
+    ends, spreads, preferred = [], [], True
+    for direction in (-1, 1):
+        rise_at = cost_along(direction)
+        reach = max(0.0, direction * math.log(LENS_REACH[0 if direction < 0 else 1] * side / focal))
+        preferred &= reach > 0.0
+        step, end, spread = math.log(PROFILE_STEP), reach, 0.0
+        previous, previous_rise, distance = 0.0, 0.0, step
+        while previous < reach:
+            distance = min(distance, reach)
+            rise, turned = rise_at(math.exp(direction * distance))
+            if previous == 0.0:
+                preferred &= rise >= FOCAL_EVIDENCE
+            if rise >= FOCAL_BOUND:
+                end = previous + (FOCAL_BOUND - previous_rise) / (rise - previous_rise) * (distance - previous)
+                spread = max(spread, turned * end / distance)
+                break
+            previous, previous_rise, spread = distance, max(rise, 0.0), max(spread, turned)
+            distance += step
+        ends.append(max(end, 0.0))
+        spreads.append(spread)
+    return FocalInterval(focal * math.exp(-ends[0]), focal * math.exp(ends[1]), max(spreads), preferred)
+
+
+def focal_warning(focal: float, source: str, interval: FocalInterval, why: str = "") -> str:
+    """The one line for a focal its ``interval`` leaves loose, whichever estimator gave it:
+    the range, what the pose may move, and what would fix it."""
+    spread = (f"; the exported rotation moves by up to {interval.rotation_spread_deg:.1f} deg across it"
+              if interval.rotation_spread_deg >= 0.1 else "")
+    return (f"{UNDETERMINED_FOCAL}{f' ({why})' if why else ''}: {focal:.0f} px ({source}), but anything from "
+            f"{interval.low:.0f} to {interval.high:.0f} px fits them{spread}; the exported cameras depend on it: "
+            "pass --focal, use photos with an EXIF focal, or add a third photo")
 
 
 @dataclass(frozen=True)

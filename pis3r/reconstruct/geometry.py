@@ -164,10 +164,10 @@ def refine_pose(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray,
     if refine_focal and not all(FOCAL_RANGE[0] * side_a < K[0, 0] < FOCAL_RANGE[1] * side_a for K in (Ka, Kb)):
         # A runaway, not a lens: the pose alone, at the starting focal.
         fixed = refine_pose(matches, R, t, K_a, K_b)
-        return replace(fixed, prior_cost=_cauchy(np.array([prior_residual(p0) / scale])))
+        return replace(fixed, prior_cost=cauchy_cost(np.array([prior_residual(p0) / scale])))
     na, nb = _normalised(Ka, matches.pts_a), _normalised(Kb, matches.pts_b)
     _, Rc, tc, _ = cv2.recoverPose(_skew(tv) @ Rm, na, nb, np.eye(3))
-    prior_cost = _cauchy(np.array([prior_residual(p) / scale])) if refine_focal else 0.0
+    prior_cost = cauchy_cost(np.array([prior_residual(p) / scale])) if refine_focal else 0.0
     return PoseFit(Rc, tc.ravel() / np.linalg.norm(tc), Ka, Kb, epipolar_cost(matches, Rm, tv, Ka, Kb), prior_cost)
 
 
@@ -226,10 +226,10 @@ def epipolar_cost(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarra
     """The robust Sampson cost (as :func:`refine_pose`'s) of matches under the pose ``R``, ``t``."""
     scale = pixel_scale(*K_a[:2, 2] * 2)
     F = _fundamental(R, t / max(np.linalg.norm(t), 1e-12), K_a, K_b)
-    return _cauchy(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
+    return cauchy_cost(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
 
 
-def _cauchy(r: np.ndarray) -> float:
+def cauchy_cost(r: np.ndarray) -> float:
     """The Cauchy cost ``sum(log(1 + r^2))`` of residuals ``r`` in units of the scale."""
     return float(np.sum(np.log1p(r * r)))
 

@@ -30,8 +30,9 @@ import cv2
 import numpy as np
 
 from pis3r.camera import focal_scaled
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
 from pis3r.reconstruct.geometry import pixel_scale
-from pis3r.reconstruct.pairs import UNDETERMINED_FOCAL, PairGeometry
+from pis3r.reconstruct.pairs import PairGeometry
 from pis3r.reconstruct.robust_lsq import robust_cost
 from pis3r.reconstruct.tracks import joint_start
 
@@ -111,13 +112,17 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
         R_rel = world[j][0] @ R_a.T
         t_rel = world[j][1] - R_rel @ t_a
         baselines[j] = float(np.linalg.norm(t_rel))
-        source, warnings = pairs[j].focal_source, pairs[j].warnings
+        source, warnings, interval = pairs[j].focal_source, pairs[j].warnings, pairs[j].focal_interval
         if refine_focal:
             # The views together determine the focal the pair left free.
             source = f"{source.split(JOINTLY)[0]}{JOINTLY} {len(start.views) + 1} views jointly"
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
+            # The pair's interval was the pair's alone; the fit's is not measured (a profile of
+            # the whole fit would cost seconds).
+            interval = None
         refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
-                             K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings)
+                             K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings,
+                             focal_interval=interval)
     return JointFit(refined, baselines, len(start.views), factor, before, problem.median_error(fitted), iterations,
                     len(start.X), int(np.sum(start.camera > 0)))
 

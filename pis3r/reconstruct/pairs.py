@@ -16,9 +16,10 @@ it, the focal and the relative pose exported for it.
    pairs, and the exported pose is the homography's decomposition the epipolar inliers
    support (so the rendered plane is the homography exactly).
 4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
-   refined jointly over all inliers (robust Sampson, weak prior). A focal the matches do not
-   determine is the one both photos' vanishing points give where they agree
-   (:mod:`pis3r.reconstruct.vanishing`); else, like one outside ordinary lenses, a warning.
+   refined jointly over all inliers (robust Sampson, weak prior).
+5. Every focal carries its interval (:class:`pis3r.reconstruct.focal.FocalInterval`): the
+   focals the matches cannot tell apart. Where it is wide, the focal is not
+   "self-calibrated" and comes with a warning (:mod:`pis3r.reconstruct.self_calibration`).
 """
 
 from __future__ import annotations
@@ -28,47 +29,29 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-import cv2
 import numpy as np
 
-from pis3r.camera import focal_scaled, rotation_angle_deg
+from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
-from pis3r.reconstruct.focal import (
-    FocalHypothesis,
-    fit_rotation,
-    focal_hypotheses,
-    plausibility_warning,
-    rotation_focal,
-)
+from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
+from pis3r.reconstruct.self_calibration import essential_fit, rotation_fit
 from pis3r.scene import Deferred
 from pis3r.subpixel import refine_matches
 
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
 FEW_INLIERS = 50
-# How the warning of a pair that leaves the focal free begins (more views may fix it).
-UNDETERMINED_FOCAL = "these two views do not determine the focal length"
 # ASIFT's matches replace SIFT's only with at least this many epipolar inliers: among its
 # hundreds of matches, a dozen agree on some fundamental matrix by chance.
 MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 # Share of epipolar inliers one homography must explain for the pair to count as planar.
 PLANAR_FRACTION = 0.9
-# A rotation explains a homography pair when its median transfer error on the homography's
-# inliers is at most this factor times the homography's plus this slack (px at 1024 px):
-# the rotation has 4 parameters to the homography's 8, so it leaves a little more.
-ROTATION_FIT_FACTOR = 1.5
-ROTATION_FIT_SLACK_PX = 0.3
 # |t| / plane distance below which a rotation's homography is rendered as the rotation.
 ROTATION_TRANSLATION = 0.02
-# The focal counts as determined by the matches when moving it by this factor either way
-# (pose re-fitted) raises the robust Sampson cost by at least FOCAL_EVIDENCE (about what
-# three matches 1 px off their epipolar lines cost).
-FOCAL_PROBE_FACTOR = 1.25
-FOCAL_EVIDENCE = 2.5
 
 
 class PhotoFeatures:
@@ -146,7 +129,8 @@ class PairGeometry:
     units of the distance of its plane (``plane``: the normal ``n`` ``(3,)``, ``n . X = 1`` in
     a), or zero with ``plane`` ``None`` (a rotation rendered as such); unit length for 3-D.
     ``inliers``: the epipolar inliers. ``info``: report-only details (features, focal
-    relation and evidence)."""
+    relation and evidence). ``focal_interval``: the reference focals the evidence cannot
+    tell apart (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None``: not measured)."""
 
     model: str
     model_reason: str
@@ -162,6 +146,12 @@ class PairGeometry:
     focal_source: str
     warnings: tuple[str, ...]
     info: dict
+    focal_interval: FocalInterval | None = None
+
+    @property
+    def focal_determined(self) -> bool:
+        """Whether the evidence pins the reference's focal (its interval is narrow)."""
+        return self.focal_interval is not None and self.focal_interval.determined(float(self.K_a[0, 0]))
 
 
 def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, focal_ref: float | None,
@@ -198,10 +188,17 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     doubts = [f"only {int(f_inl.sum())} matches of {other.photo.name} agree on one geometry: its camera may be wrong"
               ] if f_inl.sum() < FEW_INLIERS else []
 
-    def result(model, reason, K_a, K_b, R, t, plane, source, warnings, details):
+    def result(model, reason, K_a, K_b, R, t, plane, source, interval, warnings, details):
+        if doubts and interval.low < interval.high and interval.determined(float(K_a[0, 0])):
+            # A focal measured on a geometry that few matches support is no measurement (a
+            # ScanNet pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
+            lenses = FocalInterval.of_lenses(*size_a)
+            interval = interval.spanning(lenses.low).spanning(lenses.high)
+            source = f"the matches' minimum, on too few of them ({source.split(' (', 1)[-1]}"
+            warnings = [*warnings, focal_warning(float(K_a[0, 0]), source, interval, "too few matches agree")]
         return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
                             tuple(doubts + warnings),
-                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details})
+                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval)
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
@@ -209,24 +206,27 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         model == "auto" and (parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION))
     why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
     rotation = remember(("rotation", matches_key, tuple(hypotheses), known_source, focal_is_final),
-                        lambda: _rotation(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
-                                          focal_is_final)) if planar else None
+                        lambda: rotation_fit(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
+                                             focal_is_final)) if planar else None
     if rotation is not None:
-        fit, source, warnings, details = rotation
+        fit, source, interval, warnings, details = rotation
         # The homography keeps rendering the pair: as its plane (exactly) unless the
         # translation it resolves is negligible, then as the rotation (constant depth).
         R, t, n = min(geometry.homography_decompositions(H, fit.K_a, fit.K_b, inliers.pts_a),
                       key=lambda solution: rotation_angle_deg(solution[0] @ fit.R.T))
         if np.linalg.norm(t) < ROTATION_TRANSLATION:
             R, t, n = fit.R, np.zeros(3), None
-        return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, warnings, details)
+        return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, interval, warnings,
+                      details)
     # Matches on one plane (within noise, or all but a few) leave the focal free.
     plane_only = planar and (parallax.parallax_class == "rotation" or (~h_inl).sum() < MIN_MATCHES)
+    known_interval = None
     if focal_rule == "prior" and hypotheses[0].focal_a is None:
         # The prior as if it were known: a fresh essential fit at it (refined from the
         # self-calibrated pose, the fit stays in that pose's basin).
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
+        known_interval = FocalInterval.of_lenses(*size_a)
 
     def own_focal(features: PhotoFeatures) -> float | None:
         # Edges are found once per photo, whichever pair or model asks.
@@ -237,155 +237,27 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         reference_focal = own_focal(ref)
         return None if reference_focal is None else vanishing.agreed_focal(reference_focal, own_focal(other), ratio)
 
-    pose = _essential(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
-                      seen_focal)
+    pose = essential_fit(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
+                         seen_focal, known_interval)
     if pose is None:
         hypothesis = hypotheses[0]
         K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)
-        source = known_source if hypothesis.focal_a else "prior (1.2 x longest side: no essential matrix fits)"
         why = "no essential matrix fits the matches; falling back to the homography model"
         R, t, n = _supported_decomposition(H, K_a, K_b, inliers)
-        return result("homography", why, K_a, K_b, R, t, n, source, [why], {"focal_relation": hypothesis.name})
-    fit, source, warnings, details = pose
+        if hypothesis.focal_a:
+            source, interval, warnings = known_source, FocalInterval.exact(hypothesis.focal_a), [why]
+        else:
+            source, interval = "prior (1.2 x longest side: no essential matrix fits)", FocalInterval.of_lenses(*size_a)
+            warnings = [why, focal_warning(hypothesis.prior_a, source, interval, "no essential matrix fits")]
+        return result("homography", why, K_a, K_b, R, t, n, source, interval, warnings,
+                      {"focal_relation": hypothesis.name})
+    fit, source, interval, warnings, details = pose
     if not planar:
         return result("3d", f"parallax level {parallax.level:.2f} %: full 3-D model", fit.K_a, fit.K_b, fit.R,
-                      fit.t, None, source, warnings, details)
+                      fit.t, None, source, interval, warnings, details)
     R, t, n = _supported_decomposition(H, fit.K_a, fit.K_b, inliers)
     reason = f"{why}: a plane seen with a baseline (pose: the decomposition the epipolar inliers support)"
-    return result("homography", reason, fit.K_a, fit.K_b, R, t, n, source, warnings, details)
-
-
-def _rotation(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
-              focal_is_final: bool):
-    """``(RotationFit, focal source, warnings, details)`` when a pure rotation explains the
-    homography's inliers ``h_inliers``, else ``None``. Focals tried: the known one (fixed),
-    the homography's (Brown–Lowe, refined) unless the known one is final, the prior (fixed)
-    when neither is there. A known focal is kept when a rotation with it fits; when only the
-    homography's does (EXIF of a cropped or converted photo), that one is used, with a warning."""
-    homography_error = float(np.median(_transfer_error(H, h_inliers)))
-    tolerance = ROTATION_FIT_FACTOR * homography_error + ROTATION_FIT_SLACK_PX * geometry.pixel_scale(*size_a)
-    fits = []  # (error, kind, hypothesis, fit)
-    for hypothesis in hypotheses:
-        calibrated = rotation_focal(H, size_a, size_b, hypothesis.ratio)
-        starts = [(hypothesis.focal_a, "known")] if hypothesis.focal_a else []
-        if calibrated and not (hypothesis.focal_a and focal_is_final):
-            starts.append((calibrated, "calibrated"))
-        elif not hypothesis.focal_a:
-            starts.append((hypothesis.prior_a, "prior"))
-        for focal, kind in starts:
-            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
-            fit = fit_rotation(h_inliers, K_a, K_b, refine_focal=kind == "calibrated")
-            fits.append((float(np.median(fit.residuals)), kind, hypothesis, fit))
-    fitting = [candidate for candidate in fits if candidate[0] <= tolerance]
-    if not fitting:
-        return None
-    # A known focal that fits wins; among the others, the smallest error.
-    error, kind, hypothesis, fit = min(fitting, key=lambda candidate: (candidate[1] != "known", candidate[0]))
-    details = {"focal_relation": hypothesis.name, "rotation_error_px": error, "homography_error_px": homography_error}
-    if kind == "known":
-        return fit, known_source, [], details
-    if kind == "prior":
-        return fit, "prior (1.2 x longest side: the rotation does not determine it)", [
-            "focal length could not be self-calibrated; using 1.2 x the longest side"], details
-    focal = float(fit.K_a[0, 0])
-    warnings = [w for w in [plausibility_warning(focal, *size_a)] if w]
-    if hypothesis.focal_a:
-        warnings.append(f"the focal length {hypothesis.focal_a:.0f} px ({known_source}) does not fit this rotation; "
-                        f"using {focal:.0f} px, which does")
-    return fit, "self-calibrated (rotation homography: Brown-Lowe, refined)", warnings, details
-
-
-def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
-    """``(N,)`` pixels between ``H`` applied to ``pts_a`` and ``pts_b``."""
-    return np.linalg.norm(cv2.perspectiveTransform(matches.pts_a[None], H)[0] - matches.pts_b, axis=1)
-
-
-def _essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
-               plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str,
-               seen_focal: Callable[[float], float | None]):
-    """``(PoseFit, focal source, warnings, details)`` of the best essential-matrix pose over
-    the focal hypotheses and starting focals (refined jointly), or ``None``. A later
-    hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
-    noisy matches, a wrong focal relation fits them a little better about as often as not.
-    An unknown focal the matches do not determine is the one both photos' vanishing points
-    give (``seen_focal(ratio)``, :mod:`pis3r.reconstruct.vanishing`) where they agree and the
-    matches fit it; else it comes with a warning: it is where the weak prior held it, or the
-    prior itself when the matches lie on one plane (``plane_only``).
-    ``remember``: see :func:`estimate_pair`, with ``matches_key`` naming the matches' values."""
-    key = ("essential", matches_key, tuple(hypotheses), size_a, size_b)
-    best = remember(key, lambda: _best_essential(inliers, hypotheses, size_a, size_b))
-    if best is None:
-        return None
-    fit, hypothesis = best
-    details = {"focal_relation": hypothesis.name}
-    if hypothesis.focal_a:
-        return fit, known_source, [], details
-    evidence = 0.0 if plane_only else remember((*key, "evidence"), lambda: _focal_evidence(inliers, fit))
-    details["focal_evidence"] = evidence
-    source = "self-calibrated (essential matrix + Sampson refinement)"
-    if evidence < FOCAL_EVIDENCE:
-        seen = remember((*key, "vanishing"), lambda: _vanishing_fit(inliers, fit, hypothesis, size_a, size_b,
-                                                                    seen_focal(hypothesis.ratio)))
-        if seen is None:
-            if plane_only:
-                # A plane tells nothing about the focal: refit at the prior, once for every model that asks.
-                prior = hypothesis.intrinsics(hypothesis.prior_a, size_a, size_b)
-                fit = remember((*key, "prior"), lambda fit=fit: geometry.refine_pose(inliers, fit.R, fit.t, *prior))
-            why = ("the matches lie on one plane" if plane_only else
-                   f"the matches fit {FOCAL_PROBE_FACTOR:g} x more or less about as well")
-            return fit, "prior-dominated (the two views do not determine it; prior 1.2 x longest side)", [
-                f"{UNDETERMINED_FOCAL} ({why}); assumed {fit.K_a[0, 0]:.0f} px: "
-                "the exported cameras depend on it, pass --focal if you know it"], details
-        fit, source = seen, "vanishing points (both photos agree; the matches leave it free)"
-    warnings = [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
-    return fit, source, warnings, details
-
-
-def _best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b):
-    """``(PoseFit, FocalHypothesis)``: :func:`_essential`'s best fit, or ``None``."""
-    best = None
-    for hypothesis in hypotheses:
-        starts = ([hypothesis.focal_a] if hypothesis.focal_a else
-                  geometry.focal_candidates(inliers, size_a, size_b, hypothesis.prior_a, hypothesis.ratio))
-        prior = None if hypothesis.focal_a else hypothesis.prior_a
-        fits = []
-        for focal in starts:
-            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
-            pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
-            if pose is not None:
-                fits.append(geometry.refine_pose(inliers, pose[0], pose[1], K_a, K_b, prior))
-        fit = min(fits, key=lambda candidate: candidate.objective, default=None)
-        if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
-            best = (fit, hypothesis)
-    return best
-
-
-def _vanishing_fit(inliers: Matches, fit: geometry.PoseFit, hypothesis: FocalHypothesis, size_a, size_b,
-                   focal: float | None) -> geometry.PoseFit | None:
-    """The pose at the vanishing points' reference ``focal`` (held fixed; a fresh essential
-    fit and ``fit`` refined, the better kept), or ``None`` without a focal or when the
-    matches fit it worse than ``fit`` by more than ``FOCAL_EVIDENCE``: then they do say
-    something about the focal, and it is not that."""
-    if focal is None:
-        return None
-    K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
-    starts = [(fit.R, fit.t)]
-    pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
-    if pose is not None:
-        starts.append(pose[:2])
-    best = min((geometry.refine_pose(inliers, R, t, K_a, K_b) for R, t in starts), key=lambda p: p.cost)
-    return best if best.cost <= fit.cost + FOCAL_EVIDENCE else None
-
-
-def _focal_evidence(inliers: Matches, fit: geometry.PoseFit) -> float:
-    """How much worse the matches fit with the focal moved by ``FOCAL_PROBE_FACTOR`` either
-    way (pose re-fitted): the smaller rise of the robust Sampson cost."""
-    rises = []
-    for factor in (FOCAL_PROBE_FACTOR, 1.0 / FOCAL_PROBE_FACTOR):
-        probe = geometry.refine_pose(inliers, fit.R, fit.t, focal_scaled(fit.K_a, factor),
-                                     focal_scaled(fit.K_b, factor))
-        rises.append(probe.cost - fit.cost)
-    return float(min(rises))
+    return result("homography", reason, fit.K_a, fit.K_b, R, t, n, source, interval, warnings, details)
 
 
 def _supported_decomposition(H, K_a, K_b, inliers: Matches):

@@ -39,7 +39,7 @@ def zip_bytes(files: dict[str, bytes]) -> bytes:
 
 def run_stitch_job(job: Job) -> dict:
     """Stitch ``job.inputs`` with ``job.options``; write :data:`DOWNLOADS` into ``job.directory/out``
-    and return what the page shows (parallax class, canvas size, warnings)."""
+    and return what the page shows (parallax class, canvas size, focal, warnings)."""
     result = stitch(job.inputs, job.options)
     out = job.directory / "out"
     result.save(out, ply=True)
@@ -53,5 +53,6 @@ def run_stitch_job(job: Job) -> dict:
         "width": result.camera.width,
         "height": result.camera.height,
         "ref_offset": list(result.ref_offset),
+        "focal": result.report["focal"],
         "warnings": result.report["warnings"],
     }

@@ -1,0 +1,240 @@
+"""Focal and pose of one pair whose focal may be unknown, and how sure they are: a pure
+rotation's (Brown–Lowe's focal of its homography, refined) or the essential matrix's (a few
+starting focals, pose and focal refined over every epipolar inlier), each with the
+:class:`pis3r.reconstruct.focal.FocalInterval` of focals the matches cannot tell apart, found by
+re-fitting the rotation or pose at focals farther and farther from the fitted one.
+
+Two views leave the focal loose when the matches lie on one plane, when the optical axes meet
+(a camera turning around what it looks at, as on a turntable: Bougnoux's degeneracy), or when
+a rotation is seen through a narrow lens. There the focal is never called "self-calibrated"
+and comes with a warning naming what would fix it. It is the one both photos' vanishing
+points give where they agree and the matches allow it (:mod:`pis3r.reconstruct.vanishing`);
+else where the matches and the weak prior of the refinement settle (it renders better than
+the prior itself); on one plane, the prior. Where the
+matches prefer a focal but both photos' vanishing points agree on one more than
+``DETERMINED_FACTOR`` away, the two kinds of evidence disagree: the one nearer the prior is
+kept, the interval spans both, and a warning says so.
+
+Pixel coordinates follow the OpenCV convention; :mod:`pis3r.reconstruct.pairs` calls these.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import numpy as np
+
+from pis3r.camera import focal_scaled, rotation_angle_deg
+from pis3r.features import Matches
+from pis3r.reconstruct import geometry
+from pis3r.reconstruct.focal import (
+    DETERMINED_FACTOR,
+    FOCAL_EVIDENCE,
+    LENS_REACH,
+    FocalHypothesis,
+    FocalInterval,
+    fit_rotation,
+    focal_interval,
+    focal_warning,
+    plausibility_warning,
+    rotation_focal,
+)
+
+# A rotation explains a homography pair when its median transfer error on the homography's
+# inliers is at most this factor times the homography's plus this slack (px at 1024 px):
+# the rotation has 4 parameters to the homography's 8, so it leaves a little more.
+ROTATION_FIT_FACTOR = 1.5
+ROTATION_FIT_SLACK_PX = 0.3
+
+
+def rotation_fit(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
+                 focal_is_final: bool):
+    """``(RotationFit, focal source, FocalInterval, warnings, details)`` when a pure rotation
+    explains the homography's inliers ``h_inliers``, else ``None``. Focals tried: the known one
+    (fixed), the homography's (Brown–Lowe, refined) unless the known one is final, the prior
+    (fixed) when neither is there. A known focal is kept when a rotation with it fits; when only
+    the homography's does (EXIF of a cropped or converted photo), that one is used, with a
+    warning. A self-calibrated focal outside ``LENS_REACH`` times the longest side makes
+    no rotation: through a long enough lens any small motion looks like one (two neighbouring
+    turntable views fitted a rotation at 48 x the longest side, 86 deg from the true one). An
+    estimated focal's interval is :func:`rotation_interval`'s; a known one's is exact."""
+    homography_error = float(np.median(_transfer_error(H, h_inliers)))
+    tolerance = ROTATION_FIT_FACTOR * homography_error + ROTATION_FIT_SLACK_PX * geometry.pixel_scale(*size_a)
+    side = max(size_a)
+    fits = []  # (error, kind, hypothesis, fit)
+    for hypothesis in hypotheses:
+        calibrated = rotation_focal(H, size_a, size_b, hypothesis.ratio)
+        starts = [(hypothesis.focal_a, "known")] if hypothesis.focal_a else []
+        if calibrated and not (hypothesis.focal_a and focal_is_final):
+            starts.append((calibrated, "calibrated"))
+        elif not hypothesis.focal_a:
+            starts.append((hypothesis.prior_a, "prior"))
+        for focal, kind in starts:
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            fit = fit_rotation(h_inliers, K_a, K_b, refine_focal=kind == "calibrated")
+            if kind == "calibrated" and not LENS_REACH[0] <= fit.K_a[0, 0] / side <= LENS_REACH[1]:
+                continue
+            fits.append((float(np.median(fit.residuals)), kind, hypothesis, fit))
+    fitting = [candidate for candidate in fits if candidate[0] <= tolerance]
+    if not fitting:
+        return None
+    # A known focal that fits wins; among the others, the smallest error.
+    error, kind, hypothesis, fit = min(fitting, key=lambda candidate: (candidate[1] != "known", candidate[0]))
+    details = {"focal_relation": hypothesis.name, "rotation_error_px": error, "homography_error_px": homography_error}
+    focal = float(fit.K_a[0, 0])
+    if kind == "known":
+        return fit, known_source, FocalInterval.exact(focal), [], details
+    interval = rotation_interval(h_inliers, fit, size_a)
+    determined = interval.determined(focal)
+    source = ("prior (1.2 x longest side: Brown-Lowe finds no focal in this rotation)" if kind == "prior" else
+              "self-calibrated (rotation homography: Brown-Lowe, refined)" if determined else
+              "the rotation's loose fit (rotation homography: Brown-Lowe, refined)")
+    warnings = [] if determined else [focal_warning(focal, source, interval, "a rotation")]
+    warnings += [w for w in [plausibility_warning(focal, *size_a)] if w and kind == "calibrated"]
+    if hypothesis.focal_a:
+        warnings.append(f"the focal length {hypothesis.focal_a:.0f} px ({known_source}) does not fit this rotation; "
+                        f"using {focal:.0f} px, which does")
+    return fit, source, interval, warnings, details
+
+
+def rotation_interval(h_inliers: Matches, fit, size_a) -> FocalInterval:
+    """The focals a rotation explains the matches about as well at (each rotation re-fitted),
+    by the robust cost of its transfer errors (the scale of the pose fit's)."""
+    scale = geometry.pixel_scale(*size_a)
+    base = geometry.cauchy_cost(fit.residuals / scale)
+
+    def along(direction: int):
+        def rise(factor: float) -> tuple[float, float]:
+            probe = fit_rotation(h_inliers, focal_scaled(fit.K_a, factor), focal_scaled(fit.K_b, factor), False)
+            return geometry.cauchy_cost(probe.residuals / scale) - base, rotation_angle_deg(probe.R @ fit.R.T)
+        return rise
+
+    return focal_interval(float(fit.K_a[0, 0]), max(size_a), along)
+
+
+def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
+    """``(N,)`` pixels between ``H`` applied to ``pts_a`` and ``pts_b``."""
+    return np.linalg.norm(cv2.perspectiveTransform(matches.pts_a[None], H)[0] - matches.pts_b, axis=1)
+
+
+def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
+                  plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str,
+                  seen_focal: Callable[[float], float | None], known_interval: FocalInterval | None = None):
+    """``(PoseFit, focal source, FocalInterval, warnings, details)`` of the best essential-matrix
+    pose over the focal hypotheses and starting focals (refined jointly), or ``None``. A later
+    hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
+    noisy matches, a wrong focal relation fits them a little better about as often as not.
+
+    A known focal's interval is ``known_interval`` (exact where not given). An unknown one's is
+    what the matches cannot tell apart (:func:`pose_interval`; the lens range when they lie on
+    one plane, ``plane_only``). Where the matches prefer the fitted focal
+    (:attr:`FocalInterval.preferred`), it is self-calibrated (with a warning if its interval is
+    still wide), unless both photos' vanishing points (``seen_focal(ratio)``) agree on one
+    outside ``DETERMINED_FACTOR`` of it: the two kinds of evidence then disagree, the one nearer
+    the prior is kept and the interval spans both. Where they do not, the focal is chosen as the
+    module docstring says, with a warning. ``remember``: see
+    :func:`pis3r.reconstruct.pairs.estimate_pair`, with ``matches_key`` naming the matches' values."""
+    key = ("essential", matches_key, tuple(hypotheses), size_a, size_b)
+    best = remember(key, lambda: best_essential(inliers, hypotheses, size_a, size_b))
+    if best is None:
+        return None
+    fit, hypothesis = best
+    details = {"focal_relation": hypothesis.name}
+    focal = float(fit.K_a[0, 0])
+    if hypothesis.focal_a:
+        interval = known_interval or FocalInterval.exact(focal)
+        warnings = [] if interval.determined(focal) else [focal_warning(focal, known_source, interval)]
+        return fit, known_source, interval, warnings, details
+    interval = (FocalInterval.of_lenses(*size_a) if plane_only else
+                remember((*key, "interval"), lambda: pose_interval(inliers, fit, max(size_a))))
+    seen = seen_focal(hypothesis.ratio)
+    if interval.preferred:
+        if seen is None or abs(np.log(seen / focal)) <= np.log(DETERMINED_FACTOR):
+            if interval.determined(focal):
+                return fit, "self-calibrated (essential matrix + Sampson refinement)", interval, _plausibility(
+                    fit, size_a), details
+            source = "the matches' shallow minimum (essential matrix + Sampson refinement)"
+            return fit, source, interval, [focal_warning(focal, source, interval, "the matches prefer it, but only "
+                                                         "weakly"), *_plausibility(fit, size_a)], details
+        prior, matched = hypothesis.prior_a, fit
+        interval = interval.spanning(seen)
+        source = "the matches' minimum (essential matrix + Sampson refinement; the vanishing points disagree)"
+        if abs(np.log(seen / prior)) < abs(np.log(focal / prior)):
+            fit = remember((*key, "at", seen), lambda: fit_at(inliers, matched, hypothesis, seen, size_a, size_b))
+            source = "vanishing points (both photos agree; the matches' own focal is farther from the prior)"
+        why = f"the matches fit {focal:.0f} px best, both photos' vanishing points give {seen:.0f} px"
+        return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
+                                       *_plausibility(fit, size_a)], details
+    loose = fit
+    at_seen = None if seen is None else remember((*key, "at", seen), lambda: fit_at(inliers, loose, hypothesis, seen,
+                                                                                     size_a, size_b))
+    if at_seen is not None and at_seen.cost <= loose.cost + FOCAL_EVIDENCE:
+        fit, source = at_seen, "vanishing points (both photos agree; the matches leave it free)"
+    elif plane_only:
+        # A plane says nothing of the focal: the prior, as far as the matches allow it.
+        assumed = interval.clamp(hypothesis.prior_a)
+        fit = remember((*key, "at", assumed), lambda: fit_at(inliers, loose, hypothesis, assumed, size_a, size_b))
+        source = "prior (1.2 x longest side, within the focals the matches allow)"
+    else:
+        # Where the matches and the weak prior balance along a flat valley, even outside
+        # ordinary lenses (then with the plausibility warning): on the crop protocol it renders
+        # better than the prior itself (up to 1.5 dB on five pairs, the held-back band's
+        # 3-D candidate too).
+        source = "matches and prior together (the matches alone leave it free)"
+    why = "the matches lie on one plane" if plane_only else "the matches fit a range of focals about as well"
+    return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
+                                   *_plausibility(fit, size_a)], details
+
+
+def _plausibility(fit: geometry.PoseFit, size_a) -> list[str]:
+    return [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
+
+
+def best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b):
+    """``(PoseFit, FocalHypothesis)``: :func:`essential_fit`'s best fit, or ``None``."""
+    best = None
+    for hypothesis in hypotheses:
+        starts = ([hypothesis.focal_a] if hypothesis.focal_a else
+                  geometry.focal_candidates(inliers, size_a, size_b, hypothesis.prior_a, hypothesis.ratio))
+        prior = None if hypothesis.focal_a else hypothesis.prior_a
+        fits = []
+        for focal in starts:
+            K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+            pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
+            if pose is not None:
+                fits.append(geometry.refine_pose(inliers, pose[0], pose[1], K_a, K_b, prior))
+        fit = min(fits, key=lambda candidate: candidate.objective, default=None)
+        if fit is not None and (best is None or fit.objective < best[0].objective - FOCAL_EVIDENCE):
+            best = (fit, hypothesis)
+    return best
+
+
+def fit_at(inliers: Matches, fit: geometry.PoseFit, hypothesis: FocalHypothesis, focal: float, size_a,
+           size_b) -> geometry.PoseFit:
+    """The pose at the reference ``focal``, held fixed: ``fit``'s pose and a fresh essential
+    fit refined there, the better kept (a pose refitted far from its focal can stay in the
+    wrong basin)."""
+    K_a, K_b = hypothesis.intrinsics(focal, size_a, size_b)
+    starts = [(fit.R, fit.t)]
+    pose = geometry.essential_pose(inliers, K_a, K_b, *size_a)
+    if pose is not None:
+        starts.append(pose[:2])
+    return min((geometry.refine_pose(inliers, R, t, K_a, K_b) for R, t in starts), key=lambda p: p.cost)
+
+
+def pose_interval(inliers: Matches, fit: geometry.PoseFit, side: int) -> FocalInterval:
+    """The focals the matches fit about as well as ``fit``'s (:func:`pis3r.reconstruct.focal.focal_interval`),
+    the pose re-fitted at each from the one before."""
+
+    def along(direction: int):
+        last = [fit.R, fit.t]
+
+        def rise(factor: float) -> tuple[float, float]:
+            probe = geometry.refine_pose(inliers, *last, focal_scaled(fit.K_a, factor), focal_scaled(fit.K_b, factor))
+            last[:] = probe.R, probe.t
+            return probe.cost - fit.cost, rotation_angle_deg(probe.R @ fit.R.T)
+        return rise
+
+    return focal_interval(float(fit.K_a[0, 0]), side, along)
