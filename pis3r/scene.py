@@ -158,8 +158,8 @@ class Scene:
     ``model_reason``;
     ``focal`` (pixels, of the first photo) and ``focal_source``: where it came from;
     ``focal_interval``: the focals the evidence cannot tell apart
-    (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None`` where not measured: a known focal
-    refined over several views, or a learned backend);
+    (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None`` where not measured: a learned
+    backend);
     ``parallax``: the pair's parallax estimate when the backend measured it; ``warnings``:
     one line each, for the user. ``info``: report-only extras (match counts, details).
     """

@@ -94,6 +94,8 @@ def test_the_poses_and_a_wrong_focal_are_recovered_together():
     assert fit.after_px < 0.5 < fit.before_px
     # The pair's warning that it leaves the focal free no longer holds; others do.
     assert fit.pairs[1].warnings == ("few inliers",)
+    interval = fit.pairs[1].focal_interval
+    assert interval.low < FOCAL < interval.high and fit.pairs[1].focal_determined
     # Refined again (with views chained to these), a pair says so once.
     again = refine_jointly(fit.pairs, refine_focal=True)
     assert again.focal_factor == pytest.approx(1.0, abs=1e-3)
@@ -165,6 +167,23 @@ def test_a_view_chained_to_another_is_refined_with_it():
     assert alone.views == 2 and alone.pairs[4] is pairs[4]
 
 
+def test_views_that_only_translate_do_not_determine_the_focal():
+    """Cameras that move without turning (a critical motion: the views' rays keep their
+    directions, whatever the focal): the joint fit's interval spans the lens range and says so."""
+    rng = np.random.default_rng(4)
+    X = rng.uniform([-1.0, -1.0, 4.0], [1.0, 1.0, 6.0], (600, 3))
+    ref_xy = _project(_K(FOCAL), np.eye(3), np.zeros(3), X)
+    pairs = {j: _pair(_K(FOCAL / 2), np.eye(3), t, Matches(ref_xy, _project(_K(FOCAL), np.eye(3), t, X)
+                                                           + rng.normal(0.0, 0.3, (len(X), 2))))
+             for j, t in enumerate(([-0.6, 0.1, 0.0], [-0.3, -0.4, 0.2], [0.4, 0.3, -0.1]), start=1)}
+    fit = refine_jointly(pairs, refine_focal=True)
+    pair = fit.pairs[1]
+    assert not pair.focal_determined and pair.focal_interval.high / pair.focal_interval.low > 10
+    assert pair.focal_interval.low <= FOCAL <= pair.focal_interval.high
+    [warning] = [line for line in pair.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert "4 views refined together" in warning
+
+
 def _temple_fit_against_gt(views: tuple[int, int]) -> dict:
     """Temple view 13 and ``views`` stitched: both registered in one fit of two views, the
     focal within 3 % of the GT's and each rotation within 1 deg; the fit's report entry."""
@@ -178,6 +197,9 @@ def _temple_fit_against_gt(views: tuple[int, int]) -> dict:
     scene, fit = result.scene, result.report["details"]["joint_refinement"]
     assert scene.indices == (0, 1, 2) and fit["views"] == 2
     assert scene.focal == pytest.approx(gt[13].K[0, 0], rel=0.03)
+    # The fit's interval holds the GT focal and is narrow enough to call it determined.
+    assert scene.focal_interval.low <= gt[13].K[0, 0] <= scene.focal_interval.high
+    assert scene.focal_summary()["determined"] and not any("focal length" in w for w in scene.warnings)
     for view, camera in zip(views, (scene.views[1].camera, scene.views[2].camera)):
         R_gt = gt[view].R @ gt[13].R.T
         assert np.degrees(np.linalg.norm(Rotation.from_matrix(camera.R @ R_gt.T).as_rotvec())) < 1.0

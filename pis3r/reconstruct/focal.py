@@ -41,7 +41,7 @@ LENS_REACH = (0.3, 6.0)
 # either way; wider, every estimator's value comes with a warning.
 DETERMINED_FACTOR = 1.25
 # How the warning of a focal the photos leave loose begins (more views may fix it).
-UNDETERMINED_FOCAL = "these two views do not determine the focal length"
+UNDETERMINED_FOCAL = "these photos do not determine the focal length"
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,15 @@ class FocalInterval:
         """Whether the interval lies within ``DETERMINED_FACTOR`` of ``focal`` both ways."""
         slack = 1 + 1e-9
         return self.low * DETERMINED_FACTOR * slack >= focal and self.high <= focal * DETERMINED_FACTOR * slack
+
+    def scaled(self, factor: float) -> "FocalInterval":
+        """The same interval for focals ``factor`` times these (another view of the pair)."""
+        return replace(self, low=self.low * factor, high=self.high * factor)
+
+    def within(self, other: "FocalInterval", focal: float) -> "FocalInterval":
+        """This interval cut to ``other`` (the lens range, say), still holding ``focal``."""
+        return replace(self, low=float(min(max(self.low, other.low), focal)),
+                       high=float(max(min(self.high, other.high), focal)))
 
     def clamp(self, focal: float) -> float:
         return float(min(max(focal, self.low), self.high))

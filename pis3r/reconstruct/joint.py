@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import focal_scaled
-from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
+from pis3r.reconstruct.focal import FOCAL_BOUND, UNDETERMINED_FOCAL, FocalInterval, focal_warning
 from pis3r.reconstruct.geometry import pixel_scale
 from pis3r.reconstruct.pairs import PairGeometry
 from pis3r.reconstruct.robust_lsq import robust_cost
@@ -104,6 +104,8 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
     before = problem.median_error(begin)
     fitted, iterations = problem.solve(begin)
     factor = math.exp(fitted.log_focal)
+    # Relative to the fitted focal: each pair's interval is its own focal's.
+    relative = problem.focal_interval(fitted) if refine_focal else None
     world = {0: (np.eye(3), np.zeros(3)), **{j: (fitted.R[n], fitted.t[n]) for n, j in enumerate(start.views)}}
     refined, baselines = dict(pairs), {}
     for j in start.views:
@@ -114,12 +116,15 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
         baselines[j] = float(np.linalg.norm(t_rel))
         source, warnings, interval = pairs[j].focal_source, pairs[j].warnings, pairs[j].focal_interval
         if refine_focal:
-            # The views together determine the focal the pair left free.
+            # The views together determine the focal the pair left free, as far as the fit's
+            # own interval says.
+            focal = float(pairs[j].K_a[0, 0]) * factor
             source = f"{source.split(JOINTLY)[0]}{JOINTLY} {len(start.views) + 1} views jointly"
+            width, height = (2 * pairs[j].K_a[:2, 2] + 1).round().astype(int)
+            interval = relative.scaled(focal).within(FocalInterval.of_lenses(width, height), focal)
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
-            # The pair's interval was the pair's alone; the fit's is not measured (a profile of
-            # the whole fit would cost seconds).
-            interval = None
+            if not interval.determined(focal):
+                warnings += (focal_warning(focal, source, interval, f"{len(start.views) + 1} views refined together"),)
         refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
                              K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings,
                              focal_interval=interval)
@@ -188,6 +193,25 @@ class _Problem:
     def _cost(self, residual: np.ndarray) -> float:
         return robust_cost(np.linalg.norm(residual, axis=1), "cauchy", self.scale)
 
+    def focal_interval(self, state: _State) -> FocalInterval:
+        """The focals the fit cannot tell from its own, as factors of it: the cost's curvature
+        at ``state`` along the focal, every pose and point re-fitted (the focal's entry of the
+        inverse of the cameras' Schur complement; the free overall scale, its null direction,
+        left out by the pseudo-inverse), out to where the cost rises by what ``FOCAL_BOUND``
+        is in the pair fits (their Cauchy cost is this one's over 0.5 scale^2). The rotation
+        spread is the views' largest rotation response to the focal across it."""
+        residual, jacobians = self._project(state, True)
+        V_blocks, _, U, _, W = self._normal_equations(residual, jacobians)
+        size, C = self.unknowns + 1, self.unknowns
+        Y = _times_inverse(W, np.linalg.inv(V_blocks + 1e-12 * np.eye(3)))
+        covariance = np.linalg.pinv((U - Y.reshape(size, -1) @ W.reshape(size, -1).T)[:C, :C], rcond=1e-10,
+                                    hermitian=True)
+        variance = max(float(covariance[-1, -1]), 1e-300)
+        reach = self.scale * math.sqrt(FOCAL_BOUND * variance)
+        response = covariance[:6 * self.num_views, -1].reshape(-1, 6)[:, :3] / variance
+        spread = math.degrees(float(np.linalg.norm(response, axis=1).max()) * reach)
+        return FocalInterval(math.exp(-reach), math.exp(reach), spread)
+
     def median_error(self, state: _State) -> float:
         """Median reprojection error (px) in the views (the reference's own are near 0)."""
         residual, _ = self._project(state, False)
@@ -247,9 +271,7 @@ class _Problem:
         size, C = self.unknowns + 1, self.unknowns
         diagonal = np.einsum("pii->pi", V_blocks)
         V_inverse = np.linalg.inv(V_blocks + (damping * diagonal + 1e-12)[:, :, None] * np.eye(3))
-        # Y_p = W_p V_p^-1 for every point, the 3 x 3 product written out (numpy's batched
-        # product is slow on matrices this small).
-        Y = W[:, :, :1] * V_inverse[:, 0] + W[:, :, 1:2] * V_inverse[:, 1] + W[:, :, 2:] * V_inverse[:, 2]
+        Y = _times_inverse(W, V_inverse)
         # The sum over the points of Y_p W_p^T, as one product.
         reduced = U - Y.reshape(size, -1) @ W.reshape(size, -1).T
         rhs = -g_c + Y.reshape(size, -1) @ g_X.ravel()
@@ -269,6 +291,12 @@ class _Problem:
         R = np.stack([cv2.Rodrigues(pose[v, :3])[0] @ state.R[v] for v in range(self.num_views)])
         log_focal = state.log_focal + (float(step_c[-1]) if self.refine_focal else 0.0)
         return _State(R, state.t + pose[:, 3:], state.X + step_X, log_focal)
+
+
+def _times_inverse(W: np.ndarray, V_inverse: np.ndarray) -> np.ndarray:
+    """``Y_p = W_p V_p^-1`` ``(C + 1, P, 3)`` for every point, the 3 x 3 product written out
+    (numpy's batched product is slow on matrices this small)."""
+    return W[:, :, :1] * V_inverse[:, 0] + W[:, :, 1:2] * V_inverse[:, 1] + W[:, :, 2:] * V_inverse[:, 2]
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
