@@ -278,11 +278,19 @@ def load_case(spec: CaseSpec, crop: float = 0.6) -> EvalCase:
     return crop_case(*images, crop, spec.name, spec.dataset, spec.parallax_class, spec.parallax_level, cameras)
 
 
+def calibrated_paths(folder: Path, views: tuple[int, ...]) -> list[Path]:
+    """The image files of ``views`` of a Strecha (``images/NNNN.jpg``) or Middlebury
+    (``images/templeRNNNN.png``) scene."""
+    if Path(folder).name.startswith("strecha"):
+        return [Path(folder) / "images" / f"{v:04d}.jpg" for v in views]
+    return [Path(folder) / "images" / f"templeR{v:04d}.png" for v in views]
+
+
 def calibrated_views(folder: Path, views: tuple[int, int]) -> tuple[list[np.ndarray], tuple[Camera, Camera]]:
     """Images and GT cameras of two views of a Strecha or Middlebury scene (formats in
     shared/data/real/SOURCES.md)."""
+    paths = calibrated_paths(folder, views)
     if folder.name.startswith("strecha"):
-        paths = [folder / "images" / f"{v:04d}.jpg" for v in views]
         images = [read_image(p).pixels for p in paths]
         scale = dict(line.split(maxsplit=1) for line in (folder / "scale.txt").read_text().splitlines() if line.strip())
         sx, sy = float(scale["sx"]), float(scale["sy"])
@@ -296,11 +304,10 @@ def calibrated_views(folder: Path, views: tuple[int, int]) -> tuple[list[np.ndar
         fields = line.split()
         if len(fields) == 22:
             rows[fields[0]] = np.array(fields[1:], np.float64)
-    names = [f"templeR{v:04d}.png" for v in views]
-    images = [read_image(folder / "images" / name).pixels for name in names]
+    images = [read_image(path).pixels for path in paths]
     cameras = tuple(
-        Camera(rows[name][:9], rows[name][9:18], rows[name][18:], image.shape[1], image.shape[0])
-        for name, image in zip(names, images)
+        Camera(rows[path.name][:9], rows[path.name][9:18], rows[path.name][18:], image.shape[1], image.shape[0])
+        for path, image in zip(paths, images)
     )
     return images, cameras
 
