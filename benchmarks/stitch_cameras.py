@@ -1,14 +1,16 @@
 """The cameras `pis3r stitch A B` exports, against the GT, on every calibrated pair (issue 39).
 
     .venv/bin/python benchmarks/stitch_cameras.py [--data ../shared/data/real] [--only NAME ...]
-        [--workers 2] [--stitch-option=--focal --stitch-option=1500 ...]
+        [--workers 2] [--true-focal] [--stitch-option=--model --stitch-option=3d ...]
 
 The issue's protocol, where ``pis3r eval --pose-only`` judges the backend's own cameras: the
 installed ``pis3r stitch A B -o DIR`` with default options (the held-back band test chooses the
 model, so the camera is the one a user gets), on the photos as stored (no crop), on the pairs
 ``--pose-only`` judges: every neighbouring and three-apart view pair of each calibrated scene
 (:func:`pis3r.eval.cases.view_pairs`), the crop protocol's pairs of them, and the pair folders
-with a ScanNet ``gt.txt``. ``camera.json``'s two input cameras give the relative pose.
+with a ScanNet ``gt.txt``. ``camera.json``'s two input cameras give the relative pose. With
+``--true-focal`` each pair is stitched with ``--focal`` set to its reference's GT focal: what
+the pose machinery does once the focal is right.
 
 One row per pair: rotation and translation-direction errors (degrees), the focal found and the
 GT's, the interval ``report.json`` gives it, whether it calls it determined, its source, the
@@ -60,10 +62,13 @@ def relative_pose(camera_json: dict) -> np.ndarray:
     return np.hstack([R, (t_b - R @ t_a)[:, None]])
 
 
-def measure(spec: CaseSpec, options: list[str]) -> dict:
-    """One row: ``pis3r stitch`` on the pair (``options`` added), its cameras against the GT."""
+def measure(spec: CaseSpec, options: list[str], true_focal: bool = False) -> dict:
+    """One row: ``pis3r stitch`` on the pair (``options`` added; ``true_focal``: ``--focal``
+    the reference's GT focal), its cameras against the GT."""
     case = load_case(spec, 1.0)
     row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal, "refused": ""}
+    if true_focal:
+        options = [*options, "--focal", f"{row['gt_focal']:.3f}"]
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()
         run = subprocess.run([str(PIS3R), "stitch", *map(str, photo_paths(spec)), "-o", out, "--quiet", *options],
@@ -102,11 +107,12 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--only", nargs="*", default=None, help="case names (scene/a-b or pair folder) to run")
     parser.add_argument("--workers", type=int, default=2, help="stitches run at once")
+    parser.add_argument("--true-focal", action="store_true", help="stitch with --focal = the reference's GT focal")
     parser.add_argument("--stitch-option", action="append", default=[], help="an option passed to pis3r stitch")
     args = parser.parse_args()
     specs = [s for s in pose_specs(args.data) if not args.only or s.name in args.only]
     with ThreadPoolExecutor(max(1, args.workers)) as pool:
-        rows = list(pool.map(lambda spec: measure(spec, args.stitch_option), specs))
+        rows = list(pool.map(lambda spec: measure(spec, args.stitch_option, args.true_focal), specs))
     print(f"| {'pair':34s} | rot ° | dir ° | focal |    GT | interval    | determined | {'source':28s} | model      "
           "| warnings |    s |")
     print("|" + "|".join(["-" * 36, "------:", "------:", "------:", "------:", "-------------", "-----------",

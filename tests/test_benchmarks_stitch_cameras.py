@@ -26,9 +26,11 @@ def test_a_stitched_pair_s_cameras_are_measured_against_its_gt(tmp_path):
     assert not row["refused"] and row["rotation_error_deg"] < 0.5 and row["translation_error_deg"] < 3.0
     assert row["focal"] == pytest.approx(420.0, rel=0.03) and row["gt_focal"] == 420.0
     assert row["determined"] and row["focal_low"] <= 420.0 <= row["focal_high"] and row["warnings"] == 0
-    # A known focal: exact, whatever the matches say.
+    # A known focal: exact, whatever the matches say; the true one on request.
     known = stitch_cameras.measure(spec, ["--focal", "500"])
     assert known["focal"] == known["focal_low"] == known["focal_high"] == 500.0 and known["source"] == "flag"
+    true = stitch_cameras.measure(spec, [], true_focal=True)
+    assert true["focal"] == 420.0 and true["rotation_error_deg"] < 0.5
 
 
 def test_the_summary_counts_wrong_focals_called_determined_and_those_with_no_warning():
