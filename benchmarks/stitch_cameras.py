@@ -35,7 +35,7 @@ import numpy as np
 
 from pis3r.eval.cases import CaseSpec, calibrated_paths, discover_cases, find_image, load_case
 from pis3r.eval.geometry import pose_error
-from pis3r.eval.poses import FAILED_ROTATION_DEG, WRONG_FOCAL
+from pis3r.eval.poses import FAILED_ROTATION_DEG, WRONG_FOCAL, medians
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 PIS3R = Path(sys.executable).with_name("pis3r")
@@ -87,15 +87,10 @@ def measure(spec: CaseSpec, options: list[str], true_focal: bool = False) -> dic
 
 
 def summary(rows: list[dict]) -> dict:
-    """Median errors over the stitched rows, and the counts the issue's bar names."""
-    done = [r for r in rows if not r["refused"]]
-    off = [r for r in done if abs(r["focal"] / r["gt_focal"] - 1) > WRONG_FOCAL]
-    return {"pairs": len(rows), "stitched": len(done),
-            "rotation_deg": float(np.median([r["rotation_error_deg"] for r in done])) if done else math.nan,
-            "direction_deg": float(np.nanmedian([r["translation_error_deg"] for r in done])) if done else math.nan,
-            "failed": sum(r["rotation_error_deg"] > FAILED_ROTATION_DEG for r in done),
-            "wrong_but_determined": sum(bool(r["determined"]) for r in off),
-            "wrong_without_warning": sum(r["warnings"] == 0 for r in off)}
+    """:func:`pis3r.eval.poses.medians` of the rows (their keys are the same), and the focals
+    more than ``WRONG_FOCAL`` off that come with no warning at all."""
+    off = [r for r in rows if not r["refused"] and abs(r["focal"] / r["gt_focal"] - 1) > WRONG_FOCAL]
+    return {**medians(rows), "wrong_without_warning": sum(r["warnings"] == 0 for r in off)}
 
 
 def scene_of(name: str) -> str:
@@ -131,9 +126,9 @@ def main() -> None:
         groups.setdefault(scene_of(r["case"]), []).append(r)
     for name, group in [*groups.items(), ("all", rows)]:
         s = summary(group)
-        print(f"{name}: {s['stitched']} of {s['pairs']} stitched; median rotation {s['rotation_deg']:.2f}°, "
-              f"direction {s['direction_deg']:.2f}°; {s['failed']} more than {FAILED_ROTATION_DEG:g}° off; focals "
-              f"more than {WRONG_FOCAL:.0%} off: {s['wrong_but_determined']} called determined, "
+        print(f"{name}: {s['reconstructed']} of {s['pairs']} stitched; median rotation {s['rotation_error_deg']:.2f}°, "
+              f"direction {s['translation_error_deg']:.2f}°; {s['failed']} more than {FAILED_ROTATION_DEG:g}° off; "
+              f"focals more than {WRONG_FOCAL:.0%} off: {s['wrongly_determined']} called determined, "
               f"{s['wrong_without_warning']} without any warning")
 
 

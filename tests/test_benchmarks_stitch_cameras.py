@@ -40,9 +40,10 @@ def test_the_summary_counts_wrong_focals_called_determined_and_those_with_no_war
 
     rows = [row(0.5, 1010.0, True, 0), row(9.0, 600.0, True, 0), row(7.0, 1400.0, False, 1),
             row(2.0, 700.0, False, 0), {"refused": "no overlap", "gt_focal": 1000.0}]
-    assert stitch_cameras.summary(rows) == {"pairs": 5, "stitched": 4, "rotation_deg": 4.5, "direction_deg": 1.0,
-                                            "failed": 2, "wrong_but_determined": 1, "wrong_without_warning": 2}
-    assert math.isnan(stitch_cameras.summary([rows[-1]])["rotation_deg"])
+    assert stitch_cameras.summary(rows) == {"pairs": 5, "reconstructed": 4, "rotation_error_deg": 4.5,
+                                            "translation_error_deg": 1.0, "failed": 2, "wrongly_determined": 1,
+                                            "wrong_without_warning": 2}
+    assert math.isnan(stitch_cameras.summary([rows[-1]])["rotation_error_deg"])
 
 
 def test_the_relative_pose_is_the_second_input_s_in_the_first_s_frame():

@@ -230,8 +230,8 @@ def discover_cases(root: str | Path, every_view_pair: bool = False) -> list[Case
                 parallax_class = "slight" if level <= SLIGHT_MAX_BASELINE_OVER_DEPTH else "large"
                 specs.append(CaseSpec(f"{name}/{a}-{b}", root.name, "calibrated", str(folder), parallax_class,
                                       level, a, b))
-            listed = {(a, b) for a, b, _ in CALIBRATED_PAIRS[folder.name]}
             if every_view_pair:
+                listed = {(a, b) for a, b, _ in CALIBRATED_PAIRS[folder.name]}
                 specs += [CaseSpec(f"{name}/{a}-{b}", root.name, "calibrated", str(folder), UNKNOWN_CLASS,
                                    math.nan, a, b) for a, b in view_pairs(folder) if (a, b) not in listed]
         elif is_pair_dir(folder) and find_image(folder, "gt") is not None:

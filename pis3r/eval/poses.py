@@ -6,9 +6,10 @@ One row per case: relative rotation error and translation-direction error (degre
 interval of focals the photos cannot tell apart, whether that makes it determined and its
 source, the model, the features used, the epipolar inliers, how many warnings the cameras
 came with (a focal the views do not determine, an implausible one, few inliers), and the
-refusal if the pair was refused. Medians are over the pairs that were reconstructed; an exported pure rotation (no translation) of a pair whose GT cameras
-have a baseline counts 90 deg of translation error there (an unknown direction is as far
-off as that on average), not a missing value.
+refusal if the pair was refused. Medians are over the pairs that were reconstructed; an
+exported pure rotation (no translation) of a pair whose GT cameras have a baseline counts 90
+deg of translation error there (an unknown direction is as far off as that on average), not a
+missing value.
 """
 
 from __future__ import annotations

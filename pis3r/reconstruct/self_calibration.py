@@ -92,7 +92,7 @@ def rotation_fit(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_
               "self-calibrated (rotation homography: Brown-Lowe, refined)" if determined else
               "the rotation's loose fit (rotation homography: Brown-Lowe, refined)")
     warnings = [] if determined else [focal_warning(focal, source, interval, "a rotation")]
-    warnings += [w for w in [plausibility_warning(focal, *size_a)] if w and kind == "calibrated"]
+    warnings += _plausibility(fit, size_a) if kind == "calibrated" else []
     if hypothesis.focal_a:
         warnings.append(f"the focal length {hypothesis.focal_a:.0f} px ({known_source}) does not fit this rotation; "
                         f"using {focal:.0f} px, which does")
@@ -188,7 +188,8 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
                                    *_plausibility(fit, size_a)], details
 
 
-def _plausibility(fit: geometry.PoseFit, size_a) -> list[str]:
+def _plausibility(fit, size_a) -> list[str]:
+    """The plausibility warning of a self-calibrated fit's (pose or rotation) focal, if any."""
     return [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
 
 
