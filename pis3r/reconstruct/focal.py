@@ -81,9 +81,6 @@ class FocalInterval:
         return replace(self, low=float(min(max(self.low, other.low), focal)),
                        high=float(max(min(self.high, other.high), focal)))
 
-    def clamp(self, focal: float) -> float:
-        return float(min(max(focal, self.low), self.high))
-
     def spanning(self, focal: float) -> "FocalInterval":
         """The interval widened to hold ``focal`` too."""
         return replace(self, low=min(self.low, focal), high=max(self.high, focal))

@@ -173,9 +173,9 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
     if at_seen is not None and at_seen.cost <= loose.cost + FOCAL_EVIDENCE:
         fit, source = at_seen, "vanishing points (both photos agree; the matches leave it free)"
     elif plane_only:
-        # A plane says nothing of the focal: the prior, as far as the matches allow it.
-        assumed = interval.clamp(hypothesis.prior_a)
-        fit = remember((*key, "at", assumed), lambda: fit_at(inliers, loose, hypothesis, assumed, size_a, size_b))
+        # A plane says nothing of the focal (its interval is the lens range): the prior.
+        prior = hypothesis.prior_a
+        fit = remember((*key, "at", prior), lambda: fit_at(inliers, loose, hypothesis, prior, size_a, size_b))
         source = "prior (1.2 x longest side, within the focals the matches allow)"
     else:
         # Where the matches and the weak prior balance along a flat valley, even outside
