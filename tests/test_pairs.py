@@ -10,6 +10,7 @@ from pis3r.features import match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct.classical import ClassicalReconstructor
+from pis3r.reconstruct.confidence import pair_confidence
 from pis3r.reconstruct.geometry import fundamental
 from pis3r.reconstruct.focal import focal_hypotheses, focals_from_homography, plausibility_warning
 from pis3r.reconstruct.options import ReconstructOptions
@@ -115,18 +116,27 @@ def test_asift_matches_a_view_too_oblique_for_sift():
     a = PhotoFeatures(Photo(render(wall, Camera.identity(K, 480, 360))[0], "a"))
     b = PhotoFeatures(Photo(render(wall, oblique)[0], "b"))
     assert fundamental(match(a.sift, b.sift), 480, 360)[1].sum() < MIN_MATCHES
-    found = consistent_matches(a, b)
+    found = consistent_matches(a, b, matcher="sift")
     assert found.detector == "ASIFT" and found.inliers.sum() > 100
+    # The default pools SIFT's, ASIFT's and XFeat's matches there: more agree than ASIFT's alone.
+    pooled = consistent_matches(a, b)
+    assert pooled.detector == "pooled" and pooled.inliers.sum() > found.inliers.sum()
     # ASIFT's points are found on tilted copies; refined, the inliers lie on the wall's true
     # homography (their median error was 0.82 px as detected).
     H = K @ (oblique.R + np.outer(oblique.t, [0.0, 0.0, 1.0 / 6.0])) @ np.linalg.inv(K)
     inliers = found.matches.subset(found.inliers)
     projected = cv2.perspectiveTransform(inliers.pts_a[None], H)[0]
     assert np.median(np.linalg.norm(projected - inliers.pts_b, axis=1)) < 0.45
-    pair = ClassicalReconstructor(ReconstructOptions(focal=420.0)).pair_geometry(a, b, 420.0, "flag", True)
+    pair = ClassicalReconstructor(ReconstructOptions(focal=420.0, matcher="sift")).pair_geometry(a, b, 420.0, "flag",
+                                                                                                  True)
     R_gt, t_gt = relative_pose(Camera.identity(K, 480, 360), oblique)
     assert angle_deg(pair.R @ R_gt.T) < 1.0
     assert np.degrees(np.arccos(pair.t @ t_gt / np.linalg.norm(pair.t) / np.linalg.norm(t_gt))) < 2.0
+    # One plane leaves an essential matrix two poses; whichever the pooled matches give, a wrong
+    # one is never a trusted camera.
+    cv2.setRNGSeed(0)
+    pooled_pair = ClassicalReconstructor(ReconstructOptions(focal=420.0)).pair_geometry(a, b, 420.0, "flag", True)
+    assert angle_deg(pooled_pair.R @ R_gt.T) < 1.0 or not pair_confidence(pooled_pair).reliable
     # Either detector can be asked for alone; SIFT alone never computes ASIFT's features.
     sift_only = PhotoFeatures(a.photo), PhotoFeatures(b.photo)
     assert consistent_matches(*sift_only, "SIFT").detector == "SIFT"
@@ -257,5 +267,5 @@ def test_later_pairs_of_several_photos_are_matched_on_the_strongest_features(mon
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
     # The first pair fixes the focal on all features; the next on the 300 strongest.
-    assert ("matches", id(photos[0]), id(photos[1]), "auto", None) in memo
-    assert ("matches", id(photos[0]), id(photos[2]), "SIFT", 300) in memo
+    assert ("matches", id(photos[0]), id(photos[1]), "auto", None, "auto") in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "SIFT", 300, "auto") in memo

@@ -71,10 +71,12 @@ def test_a_job_end_to_end_with_a_path_like_name(small_pair):
     root = app.state.jobs.root
     with TestClient(app) as client:
         files = [("../../etc/passwd", png(small_pair[0]), "image/png"), ("b c.png", png(small_pair[1]), "image/png")]
-        response = post(client, files, backend="classical", blend="multiband")
+        response = post(client, files, backend="classical", matcher="sift", blend="multiband")
         assert response.status_code == 202, response.text
         job = wait(client, response.json()["id"])
         assert job["status"] == "done", job
+        [confidence] = job["result"]["pose_confidence"]
+        assert confidence["index"] == 1 and confidence["rotation_uncertainty_deg"] >= 0
         assert job["inputs"] == ["passwd", "b_c.png"]
         stored = sorted(p.relative_to(root).parts for p in root.rglob("*passwd"))
         assert stored == [(job["id"], "00_passwd")]

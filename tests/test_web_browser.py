@@ -72,7 +72,7 @@ def test_upload_stitch_show_download(server, browser, small_pair, tmp_path):
 
     browser.get(server + "/")
     # The form's choices and defaults are the server's StitchOptions, loaded by the page.
-    for name in ("backend", "blend"):
+    for name in ("backend", "matcher", "blend"):
         WebDriverWait(browser, 30).until(
             lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{name} option")) == len(StitchOptions.choices(name)))
         offered = [o.get_attribute("value") for o in browser.find_elements(By.CSS_SELECTOR, f"#{name} option")]
@@ -93,6 +93,8 @@ def test_upload_stitch_show_download(server, browser, small_pair, tmp_path):
     assert focal.startswith("Focal 228 px (prior") and "57–1140 px fit" in focal
     assert focal.endswith("not determined by these photos")
     assert "do not determine the focal length" in browser.find_element(By.ID, "message").text
+    cameras = browser.find_element(By.ID, "cameras").text
+    assert cameras.startswith("Camera of ") and "rotation within ±" in cameras and "matches)" in cameras
 
     browser.find_element(By.ID, "download-stitched-png").click()
     target = tmp_path / "downloads" / "stitched.png"

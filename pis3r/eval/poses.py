@@ -26,20 +26,27 @@ from pis3r.errors import Pis3rError
 from pis3r.eval.cases import CaseSpec, load_case
 from pis3r.eval.geometry import pose_error
 from pis3r.io import Photo, write_bytes
+from pis3r.reconstruct.options import DEFAULT_MATCHER
 
 COLUMNS = ("case", "rotation_error_deg", "translation_error_deg", "focal", "gt_focal", "focal_low", "focal_high",
-           "determined", "focal_source", "model", "features", "inliers", "warnings", "seconds", "refused")
+           "determined", "focal_source", "model", "features", "inliers", "uncertainty_deg", "reliable", "warnings",
+           "seconds", "refused")
 # A focal this far (relative) from the GT's is wrong: the table counts those reported as determined.
 WRONG_FOCAL = 0.25
 # A rotation this far (deg) from the GT's counts as a failed pair.
 FAILED_ROTATION_DEG = 5.0
+# A pose this far off (deg) in translation direction is wrong too (issue 40's "right": rotation
+# within 5 deg, direction within 10).
+WRONG_DIRECTION_DEG = 10.0
 # Translation-direction error counted for a rotation exported where the GT has a baseline.
 MISSING_TRANSLATION_DEG = 90.0
 
 
-def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
-    """The pose row of one case, or ``None`` when it has no GT cameras."""
+def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER) -> dict | None:
+    """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
+    GT cameras."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
+    from pis3r.reconstruct.confidence import pair_confidence
     from pis3r.reconstruct.options import ReconstructOptions
 
     case = load_case(spec, crop)
@@ -48,15 +55,18 @@ def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
     row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal, "refused": ""}
     start = time.perf_counter()
     try:
-        pair = ClassicalReconstructor(ReconstructOptions()).cameras(Photo(case.reference, "ref"),
+        pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(case.reference, "ref"),
                                                                     Photo(case.target, "tgt"))
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
+    confidence = pair_confidence(pair)
     errors = pose_error(np.hstack([pair.R, pair.t[:, None]]), case)
     if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
         errors["translation_error_deg"] = MISSING_TRANSLATION_DEG
     return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model, "features": pair.info["features"],
-            "inliers": pair.info["num_inliers"], "warnings": len(pair.warnings), "focal_source": pair.focal_source,
+            "inliers": pair.info["num_inliers"], "uncertainty_deg": confidence.uncertainty_deg,
+            "reliable": confidence.reliable, "warnings": len(pair.warnings) + (not confidence.reliable),
+            "focal_source": pair.focal_source,
             "focal_low": pair.focal_interval.low, "focal_high": pair.focal_interval.high,
             "determined": pair.focal_determined, "seconds": time.perf_counter() - start}
 
@@ -64,7 +74,9 @@ def evaluate_pose(spec: CaseSpec, crop: float) -> dict | None:
 def medians(rows: list[dict]) -> dict:
     """Median rotation and translation-direction errors over the reconstructed rows, and counts:
     ``failed``, rotations more than ``FAILED_ROTATION_DEG`` off; ``wrongly_determined``, focals
-    more than ``WRONG_FOCAL`` off the GT's that the row calls determined by the photos."""
+    more than ``WRONG_FOCAL`` off the GT's that the row calls determined by the photos;
+    ``silently_wrong``, poses more than ``FAILED_ROTATION_DEG`` or ``WRONG_DIRECTION_DEG`` off
+    that come with no warning at all."""
     done = [r for r in rows if not r["refused"]]
 
     def median(key):
@@ -76,7 +88,10 @@ def medians(rows: list[dict]) -> dict:
             "reconstructed": len(done), "pairs": len(rows),
             "failed": sum(r["rotation_error_deg"] > FAILED_ROTATION_DEG for r in done),
             "wrongly_determined": sum(bool(r.get("determined")) and abs(r["focal"] / r["gt_focal"] - 1) > WRONG_FOCAL
-                                      for r in done)}
+                                      for r in done),
+            "silently_wrong": sum(not r["warnings"] and (r["rotation_error_deg"] > FAILED_ROTATION_DEG
+                                                         or r["translation_error_deg"] > WRONG_DIRECTION_DEG)
+                                  for r in done)}
 
 
 # Columns of the printed table: title, row key, cell format (right-aligned to the title).
@@ -84,7 +99,8 @@ TABLE = (("rot °", "rotation_error_deg", "{:.2f}"), ("trans °", "translation_e
          ("focal", "focal", "{:.0f}"), ("GT focal", "gt_focal", "{:.0f}"), ("low", "focal_low", "{:.0f}"),
          ("high", "focal_high", "{:.0f}"), ("determined", "determined", "{}"), ("source", "focal_source", "{:.14}"),
          ("model", "model", "{}"),
-         ("features", "features", "{}"), ("inliers", "inliers", "{}"), ("warnings", "warnings", "{}"),
+         ("features", "features", "{}"), ("inliers", "inliers", "{}"), ("± °", "uncertainty_deg", "{:.1f}"),
+         ("reliable", "reliable", "{}"), ("warnings", "warnings", "{}"),
          ("s", "seconds", "{:.1f}"))
 
 
@@ -104,7 +120,8 @@ def format_table(rows: list[dict]) -> str:
     lines += ["", f"median over {summary['reconstructed']} reconstructed of {summary['pairs']} pairs: rotation "
               f"{summary['rotation_error_deg']:.2f}°, translation direction {summary['translation_error_deg']:.2f}°; "
               f"{summary['failed']} more than {FAILED_ROTATION_DEG:g}° off; {summary['wrongly_determined']} with a "
-              f"focal more than {WRONG_FOCAL:.0%} off called determined"]
+              f"focal more than {WRONG_FOCAL:.0%} off called determined; {summary['silently_wrong']} more than "
+              f"{FAILED_ROTATION_DEG:g}° (direction {WRONG_DIRECTION_DEG:g}°) off with no warning"]
     return "\n".join(lines)
 
 

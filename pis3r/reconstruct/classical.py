@@ -31,6 +31,7 @@ from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
+from pis3r.reconstruct.confidence import pair_confidence, unreliable_warning
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
@@ -154,7 +155,7 @@ class ClassicalReconstructor:
                         registered[j] = view_j
                         failures.pop(j, None)
 
-        pair_all(later, self.options.detector == "auto")
+        pair_all(later, self.options.detector == "auto" and self.options.matcher != "xfeat")
         # The depth's flows do not depend on the poses the joint fit refines: found meanwhile.
         background = [self._flows_in_background(photos, pairs, {})] if len(photos) > 2 else []
         joint = self._refine_jointly(pairs, {}, not self.options.focal) if len(photos) > 2 else None
@@ -193,7 +194,12 @@ class ClassicalReconstructor:
         scales = {j: b / baselines[first_view] for j, b in baselines.items()} if first_view in baselines else {}
         place_all([j for j in pairs if j not in registered and j not in anchors])
         self._place_chained(photos, pairs, anchors, scales, registered, failures)
-        warnings = [line for j in sorted(registered.keys() - {0}) for line in pairs[j].warnings]
+        warnings = []
+        for j in sorted(registered.keys() - {0}):
+            confidence = pair_confidence(pairs[j])
+            registered[j] = replace(registered[j], pose_confidence=confidence)
+            warnings += [*pairs[j].warnings, *([] if confidence.reliable else [unreliable_warning(photos[j].name,
+                                                                                                  confidence)])]
         for thread in background:
             thread.join()
         for j in failures:
@@ -269,7 +275,7 @@ class ClassicalReconstructor:
             registered[j] = view_j.in_world_of(registered[i].camera)
 
     def detector(self, ref: Photo, other: Photo) -> str:
-        """``SIFT`` or ``ASIFT``: the features that match ``ref`` and ``other``; both are
+        """``SIFT``, ``ASIFT``, ``XFeat`` or ``pooled``: the features that match ``ref`` and ``other``; both are
         memoised, so a reconstruction of the same photo objects with this memo reuses them."""
         cv2.setRNGSeed(0)
         return self._consistent_matches(*self.features([ref, other])).detector
@@ -277,8 +283,9 @@ class ClassicalReconstructor:
     def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures, detector: str | None = None,
                             strongest: int | None = None) -> ConsistentMatches:
         detector = detector or self.options.detector
-        return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest),
-                              lambda: consistent_matches(ref, other, detector, strongest))
+        matcher = self.options.matcher
+        return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher),
+                              lambda: consistent_matches(ref, other, detector, strongest, matcher))
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""

@@ -83,7 +83,8 @@ def essential_pose(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, width: in
     na, nb = _normalised(K_a, matches.pts_a), _normalised(K_b, matches.pts_b)
     threshold = 1.0 * pixel_scale(width, height) / (0.5 * (K_a[0, 0] + K_b[0, 0]))
     E, inliers = fit_essential(na, nb, threshold, RECONSTRUCTION)
-    if E is None:
+    # OpenCV's cheirality test asserts on a point or two; a pose needs more anyway.
+    if E is None or inliers.sum() < 8:
         return None
     _, R, t, pose_mask = cv2.recoverPose(E, na[inliers], nb[inliers], np.eye(3))
     good = np.zeros(len(matches), bool)

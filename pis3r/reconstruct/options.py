@@ -18,11 +18,17 @@ RECONSTRUCT_MODELS = ("auto", "homography", "apap", "3d")
 # little parallax leave the focal weakly determined, and a wrong self-calibration bends the
 # extension; which rule predicts the picture better is for the held-back band to say.
 FOCAL_RULES = ("calibrated", "prior")
-# Which features make a pair's matches: ``auto`` SIFT, with ASIFT where SIFT finds too few
-# epipolar inliers (:func:`pis3r.reconstruct.pairs.consistent_matches`); ``SIFT`` or ``ASIFT``
-# alone. The held-back band test uses the detector the whole photos used: its small copies
-# find fewer SIFT inliers and would otherwise test a pair matched differently from the stitch.
-FEATURE_DETECTORS = ("auto", "SIFT", "ASIFT")
+# Which matcher finds a pair's correspondences (issue 40): ``sift`` (ASIFT where SIFT finds too
+# few epipolar inliers), ``xfeat`` (XFeat + LighterGlue, :mod:`pis3r.learned_features`) or
+# ``auto``: SIFT, and where too few of its matches agree, SIFT's, ASIFT's and XFeat's pooled
+# (:func:`pis3r.reconstruct.pairs.consistent_matches`).
+MATCHERS = ("auto", "sift", "xfeat")
+DEFAULT_MATCHER = "auto"
+# Which features made a pair's matches: ``auto``, the matcher's rule; ``SIFT``, ``ASIFT``,
+# ``XFeat`` alone or the three ``pooled``. The held-back band test uses the detector the whole
+# photos used: its small copies find fewer SIFT inliers and would otherwise test a pair matched
+# differently from the stitch.
+FEATURE_DETECTORS = ("auto", "SIFT", "ASIFT", "XFeat", "pooled")
 
 
 @dataclass(frozen=True)
@@ -38,7 +44,7 @@ class ReconstructOptions:
     ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`;
     ``fill_reference``: whether the reference view's depth is filled where the other views do
     not see it (the held-back band test renders only the other views: there it is not);
-    ``detector``: one of :data:`FEATURE_DETECTORS`.
+    ``matcher``: one of :data:`MATCHERS`; ``detector``: one of :data:`FEATURE_DETECTORS`.
     """
 
     focal: float | None = None
@@ -49,4 +55,5 @@ class ReconstructOptions:
     model: str = "auto"
     focal_rule: str = "calibrated"
     fill_reference: bool = True
+    matcher: str = DEFAULT_MATCHER
     detector: str = "auto"

@@ -1,10 +1,11 @@
 """One pair's two-view geometry, without depth: consistent matches, the model that renders
 it, the focal and the relative pose exported for it.
 
-1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix; with fewer than
-   ``FEW_INLIERS`` epipolar inliers, ASIFT is tried too and the set with more
-   inliers kept (wide baselines foreshorten surfaces beyond what SIFT matches). ASIFT
-   detects on a copy at most 640 px long: its inliers are moved to where their patches
+1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix. With fewer than ``FEW_INLIERS``
+   epipolar inliers (wide baselines foreshorten surfaces beyond what SIFT matches), SIFT's,
+   ASIFT's and XFeat + LighterGlue's matches (:mod:`pis3r.learned_features`) are pooled
+   (matcher ``auto``), or ASIFT's replace SIFT's where more agree (matcher ``sift``). ASIFT and
+   XFeat detect on copies at most 640 px long: their matches are moved to where their patches
    correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
@@ -25,6 +26,7 @@ it, the focal and the relative pose exported for it.
 from __future__ import annotations
 
 import hashlib
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -35,9 +37,11 @@ from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
+from pis3r.learned_features import LearnedKeypoints, learned_keypoints, learned_matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
+from pis3r.reconstruct.options import DEFAULT_MATCHER
 from pis3r.reconstruct.self_calibration import essential_fit, rotation_fit
 from pis3r.scene import Deferred
 from pis3r.subpixel import refine_matches
@@ -45,8 +49,9 @@ from pis3r.subpixel import refine_matches
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
 FEW_INLIERS = 50
-# ASIFT's matches replace SIFT's only with at least this many epipolar inliers: among its
-# hundreds of matches, a dozen agree on some fundamental matrix by chance.
+# ASIFT's matches, or the pooled ones, replace SIFT's only with at least this many epipolar
+# inliers: among their hundreds of matches, a dozen agree on some fundamental matrix by chance
+# (LighterGlue matches noise with noise).
 MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 # Share of epipolar inliers one homography must explain for the pair to count as planar.
 PLANAR_FRACTION = 0.9
@@ -56,7 +61,8 @@ ROTATION_TRANSLATION = 0.02
 
 class PhotoFeatures:
     """A photo with its ``(H, W)`` uint8 luminance (:func:`pis3r.features.to_gray_u8`), its SIFT
-    features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's."""
+    features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's
+    and its XFeat keypoints."""
 
     def __init__(self, photo: Photo, max_features: int | None = None) -> None:
         self.photo = photo
@@ -67,16 +73,22 @@ class PhotoFeatures:
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))
+        self._learned = Deferred(lambda: learned_keypoints(self.gray))
 
     @property
     def affine(self) -> Features:
         return self._affine.value()
 
+    @property
+    def learned(self) -> LearnedKeypoints:
+        return self._learned.value()
+
 
 @dataclass(frozen=True)
 class ConsistentMatches:
     """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
-    fundamental matrix keeps; ``detector``: ``SIFT`` or ``ASIFT``."""
+    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat`` or ``pooled`` (the
+    three together)."""
 
     matches: Matches
     inliers: np.ndarray
@@ -84,11 +96,15 @@ class ConsistentMatches:
 
 
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
-                       strongest: int | None = None) -> ConsistentMatches:
-    """Matches of ``a`` in ``b`` and their epipolar inliers. ``detector`` ``auto``: SIFT's, on
-    each photo's ``strongest`` features if given, then on all of them, then ASIFT's, until
-    ``FEW_INLIERS`` agree (ASIFT's if it finds more, and at least ``MIN_AFFINE_INLIERS``);
-    ``SIFT`` (on the ``strongest`` if given) or ``ASIFT``: that detector's alone."""
+                       strongest: int | None = None, matcher: str = DEFAULT_MATCHER) -> ConsistentMatches:
+    """Matches of ``a`` in ``b`` and their epipolar inliers.
+
+    ``detector`` ``auto`` follows ``matcher`` (:data:`pis3r.reconstruct.options.MATCHERS`):
+    SIFT's, on each photo's ``strongest`` features if given, then on all of them, until
+    ``FEW_INLIERS`` agree; where fewer do, ``sift`` takes ASIFT's and ``auto`` SIFT's, ASIFT's
+    and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat``
+    takes XFeat's alone from the start. ``SIFT`` (on the ``strongest`` if given), ``ASIFT``,
+    ``XFeat`` or ``pooled``: those alone."""
     w, h = a.photo.width, a.photo.height
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
@@ -100,9 +116,28 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         pts_b[found.inliers] = refined.pts_b
         return replace(found, matches=Matches(found.matches.pts_a, pts_b))
 
+    def learned() -> Matches:
+        return learned_matches(a.gray, b.gray, a.learned, b.learned).matches
+
+    def pooled(sift: Matches) -> ConsistentMatches:
+        # Each detector finds some of a wide baseline's correspondences; wrong ones agree with
+        # no geometry, right ones with the same: together they pin the pose and the focal
+        # that no one of them does (ScanNet's pairs: focal 0.95-1.38 x the GT's, against
+        # 0.40-4.8 x from any one of them).
+        # XFeat (torch's import included, about 2 s the first time) runs while ASIFT detects.
+        with ThreadPoolExecutor(1) as pool:
+            xfeat = pool.submit(learned)
+            found = [sift, affine().matches, xfeat.result()]
+        return _epipolar(Matches(np.vstack([m.pts_a for m in found]), np.vstack([m.pts_b for m in found])), w, h,
+                         "pooled")
+
     if detector == "ASIFT":
         return affine()
+    if detector == "XFeat" or (detector == "auto" and matcher == "xfeat"):
+        return _epipolar(learned(), w, h, "XFeat")
     sift_a, sift_b = (a.sift, b.sift) if strongest is None else (a.sift.strongest(strongest), b.sift.strongest(strongest))
+    if detector == "pooled":
+        return pooled(match(sift_a, sift_b))
     found = _epipolar(match(sift_a, sift_b), w, h, "SIFT")
     if detector == "SIFT" or found.inliers.sum() >= FEW_INLIERS:
         return found
@@ -110,7 +145,7 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
         if found.inliers.sum() >= FEW_INLIERS:
             return found
-    retry = affine()
+    retry = pooled(found.matches) if matcher == "auto" else affine()
     count = retry.inliers.sum()
     return retry if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
 
@@ -185,11 +220,12 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     if H is None:
         raise NotEnoughOverlapError("these images do not overlap enough to stitch: no homography")
     hypotheses = focal_hypotheses(size_a, size_b, focal_ref, focal_other)
-    doubts = [f"only {int(f_inl.sum())} matches of {other.photo.name} agree on one geometry: its camera may be wrong"
-              ] if f_inl.sum() < FEW_INLIERS else []
+    # Few inliers: the camera is flagged unreliable where the scene is built
+    # (pis3r.reconstruct.confidence), and no focal is measured on them.
+    few = f_inl.sum() < FEW_INLIERS
 
     def result(model, reason, K_a, K_b, R, t, plane, source, interval, warnings, details):
-        if doubts and interval.low < interval.high and interval.determined(float(K_a[0, 0])):
+        if few and interval.low < interval.high and interval.determined(float(K_a[0, 0])):
             # A focal measured on a geometry that few matches support is no measurement (a
             # ScanNet pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
             lenses = FocalInterval.of_lenses(*size_a)
@@ -197,7 +233,7 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
             source = f"the matches' minimum, on too few of them ({source.split(' (', 1)[-1]}"
             warnings = [*warnings, focal_warning(float(K_a[0, 0]), source, interval, "too few matches agree")]
         return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
-                            tuple(doubts + warnings),
+                            tuple(warnings),
                             {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval)
 
     # A plane seen from two places is explained by one homography too, whatever its

@@ -2,7 +2,7 @@
 
 ``GET /api/options`` lists the form's options with their choices and defaults (from
 :class:`pis3r.StitchOptions`), ``POST /api/jobs`` (multipart ``files`` + ``ref``,
-``backend``, ``blend``) queues a stitch,
+``backend``, ``matcher``, ``blend``) queues a stitch,
 ``GET /api/jobs/{id}`` reports its progress and result, ``GET /api/jobs/{id}/files/{name}``
 serves its outputs. Errors are JSON ``{"detail": "one line"}`` with 400 (bad input),
 413 (over a limit), 404 (unknown job or file) or 503 (queue full).
@@ -39,7 +39,7 @@ class WebLimits:
 
 
 # The StitchOptions fields the page offers besides the reference.
-FORM_OPTIONS = ("backend", "blend")
+FORM_OPTIONS = ("backend", "matcher", "blend")
 
 
 def _form_option(name: str):
@@ -116,6 +116,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
         files: list[UploadFile] = File(description="Two or more photos of one scene"),
         ref: int = Form(0, description="Index of the reference photo (its camera is the output camera)"),
         backend: str = _form_option("backend"),
+        matcher: str = _form_option("matcher"),
         blend: str = _form_option("blend"),
     ) -> dict:
         if len(files) < 2:
@@ -124,7 +125,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
             raise UploadTooLargeError(f"at most {limits.max_files} photos per job, got {len(files)}")
         if not 0 <= ref < len(files):
             raise InputError(f"reference must be a photo index 0..{len(files) - 1}, got {ref}")
-        options = StitchOptions(ref=ref, backend=backend, blend=blend)
+        options = StitchOptions(ref=ref, backend=backend, matcher=matcher, blend=blend)
         names = [safe_name(upload.filename, index) for index, upload in enumerate(files)]
         contents = []
         for name, upload in zip(names, files):

@@ -39,7 +39,8 @@ def zip_bytes(files: dict[str, bytes]) -> bytes:
 
 def run_stitch_job(job: Job) -> dict:
     """Stitch ``job.inputs`` with ``job.options``; write :data:`DOWNLOADS` into ``job.directory/out``
-    and return what the page shows (parallax class, canvas size, focal, warnings)."""
+    and return what the page shows (parallax class, canvas size, focal, each camera's pose
+    confidence, warnings)."""
     result = stitch(job.inputs, job.options)
     out = job.directory / "out"
     result.save(out, ply=True)
@@ -54,5 +55,6 @@ def run_stitch_job(job: Job) -> dict:
         "height": result.camera.height,
         "ref_offset": list(result.ref_offset),
         "focal": result.report["focal"],
+        "pose_confidence": result.report["pose_confidence"],
         "warnings": result.report["warnings"],
     }

@@ -1,0 +1,147 @@
+"""How far a pair's exported camera can be trusted, measured from the pair itself (issue 40).
+
+A stitch can look right with a camera tens of degrees off (a homography through a fifth of
+the matches, a focal the matches leave free), and camera.json is what SfM, SLAM or depth
+estimation take from pis3r. So each registered view's relative pose gets an uncertainty in
+degrees of rotation, from two independent sources:
+
+- ``resampled_deg``: the epipolar inliers are resampled with replacement ``RESAMPLES`` times
+  and the pose fitted afresh on each, at the exported focal, by the estimator that made it
+  (essential matrix for a 3-D pair, homography for a rotation or a plane); the
+  ``RESAMPLED_PERCENTILE`` of their angles to the exported rotation. A pose that rests on a
+  few matches, on matches bunched in one corner, or on a geometry the matches barely prefer
+  to another moves far.
+- ``focal_deg``: how far the rotation moves across the focal's interval
+  (:class:`pis3r.reconstruct.focal.FocalInterval`): the focal the photos leave free. The
+  interval's own measure where the focal's profile was probed, and the pose refitted by the
+  same estimator at the interval's two ends, whichever moves it more (a plane's prior focal is
+  held without probing, yet its decomposition turns with the focal).
+
+The camera is unreliable when either exceeds ``UNRELIABLE_ROTATION_DEG`` or fewer than
+``FEW_INLIERS`` matches support it; the stitch then says so in one warning
+(:func:`unreliable_warning`) and ``report.json`` / ``camera.json`` carry the numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pis3r.camera import focal_scaled, rotation_angle_deg
+from pis3r.features import Matches
+from pis3r.reconstruct import geometry
+from pis3r.reconstruct.pairs import FEW_INLIERS, PairGeometry
+
+# Resampled fits per pair, and the percentile of their rotation errors reported: one fit in
+# five may stray that far.
+RESAMPLES = 12
+RESAMPLED_PERCENTILE = 80
+# A rotation this uncertain (deg) is no camera to build on: the issue's "right" is within 5.
+UNRELIABLE_ROTATION_DEG = 5.0
+# The resamples and the robust fits on them are seeded: a stitch's numbers are repeatable.
+RESAMPLE_SEED = 0
+
+
+@dataclass(frozen=True)
+class PoseConfidence:
+    """How sure one view's relative pose is: ``resampled_deg`` (its rotation's spread over
+    resampled matches), ``focal_deg`` (its spread across the focal's interval), ``inliers``
+    (the epipolar inliers it rests on)."""
+
+    resampled_deg: float
+    focal_deg: float
+    inliers: int
+
+    @property
+    def uncertainty_deg(self) -> float:
+        """The larger of the two spreads: how far off the rotation may be."""
+        return max(self.resampled_deg, self.focal_deg)
+
+    @property
+    def reliable(self) -> bool:
+        return self.uncertainty_deg <= UNRELIABLE_ROTATION_DEG and self.inliers >= FEW_INLIERS
+
+    def reasons(self) -> list[str]:
+        """What makes the pose unreliable, in words (empty where it is not)."""
+        reasons = []
+        if self.inliers < FEW_INLIERS:
+            reasons.append(f"only {self.inliers} matches support it")
+        if self.resampled_deg > UNRELIABLE_ROTATION_DEG:
+            reasons.append(f"resampling its matches moves it by {self.resampled_deg:.0f} deg")
+        if self.focal_deg > UNRELIABLE_ROTATION_DEG:
+            reasons.append(f"the focal lengths the photos allow move it by {self.focal_deg:.0f} deg")
+        return reasons
+
+    def to_dict(self) -> dict:
+        return {"rotation_uncertainty_deg": round(self.uncertainty_deg, 3),
+                "resampled_deg": round(self.resampled_deg, 3), "focal_deg": round(self.focal_deg, 3),
+                "inliers": self.inliers, "reliable": self.reliable}
+
+
+def pair_confidence(pair: PairGeometry) -> PoseConfidence:
+    """:func:`pose_confidence` of a pair's exported pose."""
+    # The thresholds scale with the reference's size, which its principal point (the centre) gives.
+    size_a = tuple(int(round(2 * c)) for c in pair.K_a[:2, 2])
+    interval, focal_deg = pair.focal_interval, 0.0
+    if interval is not None and interval.low < interval.high:
+        cv2.setRNGSeed(RESAMPLE_SEED)
+        ends = [_refit_rotation(pair.inliers, pair.R, pair.t, pair.plane, focal_scaled(pair.K_a, end / pair.K_a[0, 0]),
+                                focal_scaled(pair.K_b, end / pair.K_a[0, 0]), size_a)
+                for end in (interval.low, interval.high)]
+        focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
+                                                          for R in ends])
+    return pose_confidence(pair.inliers, pair.R, pair.t, pair.plane, pair.K_a, pair.K_b, size_a, focal_deg)
+
+
+def pose_confidence(inliers: Matches, R: np.ndarray, t: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
+                    K_b: np.ndarray, size_a: tuple[int, int], focal_deg: float) -> PoseConfidence:
+    """The confidence of the pose ``R`` ``(3, 3)``, ``t`` ``(3,)`` of a pair with epipolar
+    ``inliers`` (pixels of a, b), intrinsics ``K_a``, ``K_b`` ``(3, 3)``, reference size
+    ``size_a`` ``(width, height)``: a 3-D pair's (``t`` non-zero, ``plane`` ``None``) is refitted
+    by essential matrices, a homography pair's (a ``plane`` ``(3,)``, or ``t`` zero: a rotation)
+    by homographies. ``focal_deg``: the rotation's spread across the focal's interval."""
+    count = len(inliers)
+    if count < 8:
+        return PoseConfidence(180.0, focal_deg, count)
+    rng = np.random.default_rng(RESAMPLE_SEED)
+    cv2.setRNGSeed(RESAMPLE_SEED)
+    angles = []
+    for _ in range(RESAMPLES):
+        refit = _refit_rotation(inliers.subset(rng.integers(0, count, count)), R, t, plane, K_a, K_b, size_a)
+        angles.append(180.0 if refit is None else rotation_angle_deg(refit @ R.T))
+    return PoseConfidence(float(np.percentile(angles, RESAMPLED_PERCENTILE)), focal_deg, count)
+
+
+def _refit_rotation(matches: Matches, R: np.ndarray, t: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
+                    K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray | None:
+    """The rotation that the estimator of the pose ``R``, ``t``, ``plane`` (see
+    :func:`pose_confidence`) fits to ``matches`` at ``K_a``, ``K_b``; ``None`` where none fits."""
+    if plane is not None or not np.any(t):
+        return _homography_rotation(matches, R, plane, K_a, K_b, size_a)
+    found = geometry.essential_pose(matches, K_a, K_b, *size_a)
+    return None if found is None else found[0]
+
+
+def _homography_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
+                         K_b: np.ndarray, size_a: tuple[int, int]):
+    """The rotation of a homography fitted to ``matches``: its nearest rotation for a pure
+    rotation (``plane`` ``None``), else its decomposition nearest ``R``."""
+    H, _ = geometry.homography(matches, *size_a)
+    if H is None:
+        return None
+    if plane is None:
+        rotation = np.linalg.inv(K_b) @ H @ K_a
+        u, _, vt = np.linalg.svd(rotation / np.cbrt(np.linalg.det(rotation)))
+        return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    solutions = geometry.homography_decompositions(H, K_a, K_b, matches.pts_a)
+    return min((s[0] for s in solutions), key=lambda candidate: rotation_angle_deg(candidate @ R.T), default=None)
+
+
+def unreliable_warning(name: str, confidence: PoseConfidence) -> str:
+    """The one line that says the camera of photo ``name`` cannot be trusted, and why."""
+    return (f"the camera of {name} is unreliable: its rotation may be {confidence.uncertainty_deg:.0f} deg or more "
+            f"off ({'; '.join(confidence.reasons())}); do not use camera.json for SfM as it is: pass --focal, "
+            f"add photos between these, or try --matcher xfeat")
+

@@ -1,0 +1,82 @@
+"""pis3r.reconstruct.confidence: every registered view's pose carries how far it may be off,
+measured from the pair itself, and a camera that cannot be trusted is said to be (issue 40)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import pis3r
+from pis3r.features import Matches
+from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, pair_confidence,
+                                          pose_confidence, unreliable_warning)
+from pis3r.reconstruct.pairs import FEW_INLIERS
+from tests.test_self_calibration import cameras_of, general_pair
+
+
+def test_a_well_supported_pose_is_reliable_and_stable_under_resampling():
+    a, b, _, _ = general_pair()
+    pair = cameras_of(a, b)
+    confidence = pair_confidence(pair)
+    assert confidence.reliable and confidence.resampled_deg < 0.5 and confidence.inliers == len(pair.inliers)
+    assert pair.focal_interval.rotation_spread_deg <= confidence.focal_deg < 1.0
+
+
+def test_few_or_scattered_matches_make_the_pose_unreliable():
+    a, b, _, _ = general_pair()
+    pair = cameras_of(a, b, focal=420.0)
+    keep = np.random.default_rng(3).choice(len(pair.inliers), FEW_INLIERS - 10, replace=False)
+    few = pose_confidence(pair.inliers.subset(keep), pair.R, pair.t, None, pair.K_a, pair.K_b, (480, 360), 0.0)
+    assert not few.reliable and few.reasons() == [f"only {FEW_INLIERS - 10} matches support it"]
+    # The matches' b side shuffled: no pose explains them, every refit lands elsewhere.
+    shuffled = Matches(pair.inliers.pts_a, pair.inliers.pts_b[np.random.default_rng(4).permutation(len(pair.inliers))])
+    lost = pose_confidence(shuffled, pair.R, pair.t, None, pair.K_a, pair.K_b, (480, 360), 0.0)
+    assert not lost.reliable and lost.resampled_deg > UNRELIABLE_ROTATION_DEG
+    assert any(reason.startswith("resampling its matches moves it by") for reason in lost.reasons())
+
+
+def test_a_rotation_is_resampled_through_homographies():
+    """A homography pair is refitted by homographies: an exact rotation stays put."""
+    rng = np.random.default_rng(5)
+    K = np.array([[500.0, 0, 240], [0, 500.0, 180], [0, 0, 1]])
+    R = np.array([[np.cos(0.2), 0, np.sin(0.2)], [0, 1, 0], [-np.sin(0.2), 0, np.cos(0.2)]])
+    pts_a = rng.uniform([0, 0], [480, 360], (300, 2))
+    mapped = (K @ R @ np.linalg.inv(K) @ np.column_stack([pts_a, np.ones(300)]).T).T
+    matches = Matches(pts_a, mapped[:, :2] / mapped[:, 2:] + rng.normal(0, 0.3, (300, 2)))
+    confidence = pose_confidence(matches, R, np.zeros(3), None, K, K, (480, 360), 0.0)
+    assert confidence.reliable and confidence.resampled_deg < 0.2
+
+
+def test_a_focal_the_photos_leave_free_makes_the_camera_unreliable():
+    confidence = PoseConfidence(resampled_deg=0.3, focal_deg=12.0, inliers=400)
+    assert not confidence.reliable and confidence.uncertainty_deg == 12.0
+    line = unreliable_warning("tgt.jpg", confidence)
+    assert line.startswith("the camera of tgt.jpg is unreliable: its rotation may be 12 deg or more off")
+    assert "the focal lengths the photos allow move it by 12 deg" in line and "--focal" in line and "\n" not in line
+    assert confidence.to_dict() == {"rotation_uncertainty_deg": 12.0, "resampled_deg": 0.3, "focal_deg": 12.0,
+                                    "inliers": 400, "reliable": False}
+
+
+def test_the_stitch_reports_each_view_s_pose_confidence(tmp_path):
+    a, b, _, _ = general_pair()
+    result = pis3r.stitch([a.pixels, b.pixels], backend="classical", refine="none", focal=420.0)
+    [entry] = result.report["pose_confidence"]
+    assert entry["index"] == 1 and entry["reliable"] and entry["rotation_uncertainty_deg"] < 1.0
+    result.save(tmp_path)
+    inputs = json.loads((tmp_path / "camera.json").read_text())["inputs"]
+    assert inputs[0]["pose_confidence"] is None and inputs[1]["pose_confidence"] == {
+        key: entry[key] for key in ("rotation_uncertainty_deg", "resampled_deg", "focal_deg", "inliers", "reliable")}
+    assert not any("unreliable" in line for line in result.report["warnings"])
+
+
+def test_an_unreliable_camera_is_one_warning_of_the_stitch():
+    """Two views of a scene whose matches a plane explains, the focal left to self-calibration:
+    a camera the photos do not fix is stitched with a warning naming it."""
+    from tests.test_pairs import facade_pair
+
+    a, b, _, _ = facade_pair([-1.5, 0.2, 0.5], -8.0)
+    result = pis3r.stitch([a.pixels, b.pixels], backend="classical", refine="none")
+    [entry] = result.report["pose_confidence"]
+    lines = [line for line in result.report["warnings"] if "is unreliable" in line]
+    assert not entry["reliable"] and len(lines) == 1 and lines[0].startswith(f"the camera of {entry['name']} ")
+    assert entry["rotation_uncertainty_deg"] == pytest.approx(max(entry["resampled_deg"], entry["focal_deg"]))
