@@ -115,3 +115,17 @@ def test_xfeat_alone_on_a_wide_pair_stitches_without_a_raw_opencv_error():
     case = load_crop_case(REAL / "ela-DFW_desk", crop=0.6)
     result = pis3r.stitch([case.reference, case.target], backend="classical", refine="none", matcher="xfeat")
     assert result.report["model_choice"]["detector"] == "XFeat" and result.report["inliers"] > 100
+
+
+def test_a_stitch_that_will_run_xfeat_imports_it_on_the_warm_up_thread(monkeypatch):
+    """Where every pair runs XFeat, torch and kornia are imported while SIFT detects; where
+    only some may (auto), they are not imported unless needed."""
+    from pis3r import api
+    from pis3r.learned_features import LEARNED_MODULES
+
+    asked = []
+    monkeypatch.setattr(api, "warm_up_in_background", lambda modules: asked.append(set(modules)))
+    a, b = _shifted_crops()
+    for matcher in ("xfeat", "auto"):
+        pis3r.stitch([a, b], backend="classical", refine="none", matcher=matcher)
+    assert set(LEARNED_MODULES) <= asked[0] and not set(LEARNED_MODULES) & asked[1]

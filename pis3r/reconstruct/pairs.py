@@ -122,7 +122,7 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     def pooled(sift: Matches) -> ConsistentMatches:
         # Each detector finds some of a wide baseline's correspondences; wrong ones agree with
         # no geometry, right ones with the same: together they pin the pose and the focal
-        # that no one of them does (ScanNet's pairs: focal 0.95-1.38 x the GT's, against
+        # that no one of them does (ScanNet's pairs: focal 0.73-1.15 x the GT's, against
         # 0.40-4.8 x from any one of them).
         # XFeat (torch's import included, about 2 s the first time) runs while ASIFT detects.
         with ThreadPoolExecutor(1) as pool:
