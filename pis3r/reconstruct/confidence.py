@@ -85,14 +85,16 @@ def pair_confidence(pair: PairGeometry) -> PoseConfidence:
     # The thresholds scale with the reference's size, which its principal point (the centre) gives.
     size_a = tuple(int(round(2 * c)) for c in pair.K_a[:2, 2])
     interval, focal_deg = pair.focal_interval, 0.0
+    # A homography pair posed by its essential matrix is refitted as a 3-D pair.
+    plane = None if pair.pose_estimator == "essential" else pair.plane
     if interval is not None and interval.low < interval.high:
         cv2.setRNGSeed(RESAMPLE_SEED)
-        ends = [_refit_rotation(pair.inliers, pair.R, pair.t, pair.plane, focal_scaled(pair.K_a, end / pair.K_a[0, 0]),
+        ends = [_refit_rotation(pair.inliers, pair.R, pair.t, plane, focal_scaled(pair.K_a, end / pair.K_a[0, 0]),
                                 focal_scaled(pair.K_b, end / pair.K_a[0, 0]), size_a)
                 for end in (interval.low, interval.high)]
         focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
                                                           for R in ends])
-    return pose_confidence(pair.inliers, pair.R, pair.t, pair.plane, pair.K_a, pair.K_b, size_a, focal_deg)
+    return pose_confidence(pair.inliers, pair.R, pair.t, plane, pair.K_a, pair.K_b, size_a, focal_deg)
 
 
 def pose_confidence(inliers: Matches, R: np.ndarray, t: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
