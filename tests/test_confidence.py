@@ -26,11 +26,11 @@ def test_few_or_scattered_matches_make_the_pose_unreliable():
     a, b, _, _ = general_pair()
     pair = cameras_of(a, b, focal=420.0)
     keep = np.random.default_rng(3).choice(len(pair.inliers), FEW_INLIERS - 10, replace=False)
-    few = pose_confidence(pair.inliers.subset(keep), pair.R, pair.t, None, pair.K_a, pair.K_b, (480, 360), 0.0)
+    few = pose_confidence(pair.inliers.subset(keep), pair.R, None, "essential", pair.K_a, pair.K_b, (480, 360), 0.0)
     assert not few.reliable and few.reasons() == [f"only {FEW_INLIERS - 10} matches support it"]
     # The matches' b side shuffled: no pose explains them, every refit lands elsewhere.
     shuffled = Matches(pair.inliers.pts_a, pair.inliers.pts_b[np.random.default_rng(4).permutation(len(pair.inliers))])
-    lost = pose_confidence(shuffled, pair.R, pair.t, None, pair.K_a, pair.K_b, (480, 360), 0.0)
+    lost = pose_confidence(shuffled, pair.R, None, "essential", pair.K_a, pair.K_b, (480, 360), 0.0)
     assert not lost.reliable and lost.resampled_deg > UNRELIABLE_ROTATION_DEG
     assert any(reason.startswith("resampling its matches moves it by") for reason in lost.reasons())
 
@@ -43,7 +43,7 @@ def test_a_rotation_is_resampled_through_homographies():
     pts_a = rng.uniform([0, 0], [480, 360], (300, 2))
     mapped = (K @ R @ np.linalg.inv(K) @ np.column_stack([pts_a, np.ones(300)]).T).T
     matches = Matches(pts_a, mapped[:, :2] / mapped[:, 2:] + rng.normal(0, 0.3, (300, 2)))
-    confidence = pose_confidence(matches, R, np.zeros(3), None, K, K, (480, 360), 0.0)
+    confidence = pose_confidence(matches, R, None, "homography", K, K, (480, 360), 0.0)
     assert confidence.reliable and confidence.resampled_deg < 0.2
 
 

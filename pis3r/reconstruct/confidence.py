@@ -85,25 +85,26 @@ def pair_confidence(pair: PairGeometry) -> PoseConfidence:
     # The thresholds scale with the reference's size, which its principal point (the centre) gives.
     size_a = tuple(int(round(2 * c)) for c in pair.K_a[:2, 2])
     interval, focal_deg = pair.focal_interval, 0.0
-    # A homography pair posed by its essential matrix is refitted as a 3-D pair.
-    plane = None if pair.pose_estimator == "essential" else pair.plane
     if interval is not None and interval.low < interval.high:
         cv2.setRNGSeed(RESAMPLE_SEED)
-        ends = [_refit_rotation(pair.inliers, pair.R, pair.t, plane, focal_scaled(pair.K_a, end / pair.K_a[0, 0]),
-                                focal_scaled(pair.K_b, end / pair.K_a[0, 0]), size_a)
+        ends = [_refit_rotation(pair.inliers, pair.R, pair.plane, pair.pose_estimator,
+                                focal_scaled(pair.K_a, end / pair.K_a[0, 0]), focal_scaled(pair.K_b, end / pair.K_a[0, 0]),
+                                size_a)
                 for end in (interval.low, interval.high)]
         focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
                                                           for R in ends])
-    return pose_confidence(pair.inliers, pair.R, pair.t, plane, pair.K_a, pair.K_b, size_a, focal_deg)
+    return pose_confidence(pair.inliers, pair.R, pair.plane, pair.pose_estimator, pair.K_a, pair.K_b, size_a,
+                           focal_deg)
 
 
-def pose_confidence(inliers: Matches, R: np.ndarray, t: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
+def pose_confidence(inliers: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,
                     K_b: np.ndarray, size_a: tuple[int, int], focal_deg: float) -> PoseConfidence:
-    """The confidence of the pose ``R`` ``(3, 3)``, ``t`` ``(3,)`` of a pair with epipolar
-    ``inliers`` (pixels of a, b), intrinsics ``K_a``, ``K_b`` ``(3, 3)``, reference size
-    ``size_a`` ``(width, height)``: a 3-D pair's (``t`` non-zero, ``plane`` ``None``) is refitted
-    by essential matrices, a homography pair's (a ``plane`` ``(3,)``, or ``t`` zero: a rotation)
-    by homographies. ``focal_deg``: the rotation's spread across the focal's interval."""
+    """The confidence of the rotation ``R`` ``(3, 3)`` of a pair with epipolar ``inliers`` (pixels
+    of a, b), intrinsics ``K_a``, ``K_b`` ``(3, 3)``, reference size ``size_a`` ``(width,
+    height)``, refitted by the ``estimator`` that fixed it
+    (:attr:`pis3r.reconstruct.pairs.PairGeometry.pose_estimator`): ``essential`` matrices, or
+    ``homography``: a pure rotation's where ``plane`` is ``None``, else the decomposition of the
+    plane ``(3,)``. ``focal_deg``: the rotation's spread across the focal's interval."""
     count = len(inliers)
     if count < 8:
         return PoseConfidence(180.0, focal_deg, count)
@@ -111,16 +112,16 @@ def pose_confidence(inliers: Matches, R: np.ndarray, t: np.ndarray, plane: np.nd
     cv2.setRNGSeed(RESAMPLE_SEED)
     angles = []
     for _ in range(RESAMPLES):
-        refit = _refit_rotation(inliers.subset(rng.integers(0, count, count)), R, t, plane, K_a, K_b, size_a)
+        refit = _refit_rotation(inliers.subset(rng.integers(0, count, count)), R, plane, estimator, K_a, K_b, size_a)
         angles.append(180.0 if refit is None else rotation_angle_deg(refit @ R.T))
     return PoseConfidence(float(np.percentile(angles, RESAMPLED_PERCENTILE)), focal_deg, count)
 
 
-def _refit_rotation(matches: Matches, R: np.ndarray, t: np.ndarray, plane: np.ndarray | None, K_a: np.ndarray,
+def _refit_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,
                     K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray | None:
-    """The rotation that the estimator of the pose ``R``, ``t``, ``plane`` (see
-    :func:`pose_confidence`) fits to ``matches`` at ``K_a``, ``K_b``; ``None`` where none fits."""
-    if plane is not None or not np.any(t):
+    """The rotation that ``estimator`` (see :func:`pose_confidence`) fits to ``matches`` at
+    ``K_a``, ``K_b``; ``None`` where none fits."""
+    if estimator == "homography":
         return _homography_rotation(matches, R, plane, K_a, K_b, size_a)
     found = geometry.essential_pose(matches, K_a, K_b, *size_a)
     return None if found is None else found[0]
