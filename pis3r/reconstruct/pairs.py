@@ -37,7 +37,7 @@ from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
-from pis3r.learned_features import LearnedKeypoints, learned_keypoints, learned_matches
+from pis3r.learned_features import LEARNED_NETWORKS, LearnedKeypoints, learned_keypoints, learned_matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
@@ -76,22 +76,24 @@ class PhotoFeatures:
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))
-        self._learned = Deferred(lambda: learned_keypoints(self.gray))
+        # XFeat sees the luminance, ALIKED the colours it was trained on.
+        self._learned = {name: Deferred(lambda name=name: learned_keypoints(
+            self.gray if name == "xfeat" else photo.pixels, name)) for name in LEARNED_NETWORKS}
 
     @property
     def affine(self) -> Features:
         return self._affine.value()
 
-    @property
-    def learned(self) -> LearnedKeypoints:
-        return self._learned.value()
+    def learned(self, network: str) -> LearnedKeypoints:
+        """The ``network``'s keypoints (:data:`pis3r.learned_features.LEARNED_NETWORKS`)."""
+        return self._learned[network].value()
 
 
 @dataclass(frozen=True)
 class ConsistentMatches:
     """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
-    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat`` or ``pooled`` (the
-    three together)."""
+    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat``, ``ALIKED`` or
+    ``pooled`` (SIFT's, ASIFT's and XFeat's together)."""
 
     matches: Matches
     inliers: np.ndarray
@@ -105,9 +107,9 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     ``detector`` ``auto`` follows ``matcher`` (:data:`pis3r.reconstruct.options.MATCHERS`):
     SIFT's, on each photo's ``strongest`` features if given, then on all of them, until
     ``FEW_INLIERS`` agree; where fewer do, ``sift`` takes ASIFT's and ``auto`` SIFT's, ASIFT's
-    and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat``
-    takes XFeat's alone from the start. ``SIFT`` (on the ``strongest`` if given), ``ASIFT``,
-    ``XFeat`` or ``pooled``: those alone."""
+    and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat`` and
+    ``aliked`` take that network's alone from the start. ``SIFT`` (on the ``strongest`` if
+    given), ``ASIFT``, ``XFeat``, ``ALIKED`` or ``pooled``: those alone."""
     w, h = a.photo.width, a.photo.height
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
@@ -119,8 +121,8 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         pts_b[found.inliers] = refined.pts_b
         return replace(found, matches=Matches(found.matches.pts_a, pts_b))
 
-    def learned() -> Matches:
-        return learned_matches(a.gray, b.gray, a.learned, b.learned).matches
+    def learned(network: str) -> Matches:
+        return learned_matches(a.gray, b.gray, a.learned(network), b.learned(network), network).matches
 
     def pooled(sift: Matches) -> ConsistentMatches:
         # Each detector finds some of a wide baseline's correspondences; wrong ones agree with
@@ -129,15 +131,16 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         # 0.40-4.8 x from any one of them).
         # XFeat (torch's import included, about 2 s the first time) runs while ASIFT detects.
         with ThreadPoolExecutor(1) as pool:
-            xfeat = pool.submit(learned)
+            xfeat = pool.submit(learned, "xfeat")
             found = [sift, affine().matches, xfeat.result()]
         return _epipolar(Matches(np.vstack([m.pts_a for m in found]), np.vstack([m.pts_b for m in found])), w, h,
                          "pooled")
 
     if detector == "ASIFT":
         return affine()
-    if detector == "XFeat" or (detector == "auto" and matcher == "xfeat"):
-        return _epipolar(learned(), w, h, "XFeat")
+    for network in LEARNED_NETWORKS.values():
+        if detector == network.label or (detector == "auto" and matcher == network.name):
+            return _epipolar(learned(network.name), w, h, network.label)
     sift_a, sift_b = (a.sift, b.sift) if strongest is None else (a.sift.strongest(strongest), b.sift.strongest(strongest))
     if detector == "pooled":
         return pooled(match(sift_a, sift_b))
