@@ -38,8 +38,11 @@ from pis3r.stitch.blend import blend_reference_border
 from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
-from pis3r.stitch.render import Canvas, render_to_canvas
+from pis3r.stitch.canvas import Canvas
+from pis3r.stitch.panorama import choose_projection, render_to_panorama
+from pis3r.stitch.render import render_to_canvas
 from pis3r.learned_features import LEARNED_NETWORKS
+from pis3r.projection import CAMERA_MODELS
 from pis3r.warmup import CLASSICAL_MODULES, single_threaded_blas, warm_up_in_background
 
 # Inputs above this are downscaled before anything else (memory and time grow
@@ -167,29 +170,42 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
 class Composite:
     """One reference's canvas after every stage: geometry, final image, mask, stage seconds,
     and the refinement that ran (``auto`` resolved). Hole filling and blending work on the
-    rendered canvas's pixels in place: ``canvas.image`` is the blended image before refinement."""
+    rendered canvas's pixels in place: ``canvas.image`` is the blended image before refinement.
+    ``projection``: the canvas's (``auto`` resolved)."""
 
     canvas: Canvas
     image: np.ndarray
     mask: np.ndarray
     seconds: dict[str, float]
     refine: str
+    projection: str = "perspective"
 
 
 def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: StageTimer) -> Composite:
     """Render, fill holes, blend and (optionally) refine the canvas of input ``ref_index``."""
     sub = timer.child(f"ref {ref_index}: " if options.ref == "all" else "")
+    position = scene.position(ref_index)
+    projection = (choose_projection(scene, position, options.max_canvas_scale) if options.projection == "auto"
+                  else options.projection)
     with sub.stage("render"):
-        canvas = render_to_canvas(scene, scene.position(ref_index), options.max_canvas_scale)
+        if projection == "perspective":
+            canvas = render_to_canvas(scene, position, options.max_canvas_scale)
+        else:
+            canvas = render_to_panorama(scene, position, CAMERA_MODELS[projection])
+    if options.projection == "auto":
+        sub.say(f"projection: {projection} (auto)")
     with sub.stage("fill holes"):
         # In place, like the blend: each stage owns the canvas's pixels in turn (tens of megapixels).
         filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius, in_place=True)
-    with sub.stage("blend"):
-        image = blend_reference_border(
-            filled.image, canvas.ref_offset, canvas.under_reference, canvas.under_valid,
-            editable=canvas.occupied | filled.hole, method=options.blend, into_reference=options.blend_into_reference,
-            in_place=True,
-        )
+    image = filled.image
+    # A panorama's reference is no window of the canvas: its border is not blended (yet).
+    if canvas.under_reference is not None:
+        with sub.stage("blend"):
+            image = blend_reference_border(
+                filled.image, canvas.ref_offset, canvas.under_reference, canvas.under_valid,
+                editable=canvas.occupied | filled.hole, method=options.blend,
+                into_reference=options.blend_into_reference, in_place=True,
+            )
     mask = stitch_mask(canvas.occupied, filled.hole)
     refine = resolve_refine(options.refine, options.refine_weights)
     if refine == "rddm":
@@ -199,7 +215,7 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
         with sub.stage("refine"):
             image = refine_canvas(image, mask, options.refine_region, options.refine_steps,
                                   resolve_device(options.device), options.refine_weights)
-    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine)
+    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine, projection)
 
 
 def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: ParallaxEstimate, result: Composite,
@@ -218,7 +234,7 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "matches": scene.info.get("num_matches"),
         "inliers": scene.info.get("num_inliers"),
         "seconds": {name: round(value, 4) for name, value in result.seconds.items()},
-        "canvas": {"width": canvas.camera.width, "height": canvas.camera.height},
+        "canvas": {"width": canvas.camera.width, "height": canvas.camera.height, "projection": result.projection},
         "ref_offset": list(canvas.ref_offset),
         "fractions": {
             "projected": round(float((mask == MaskValue.RENDERED).sum()) / total, 5),

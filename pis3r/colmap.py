@@ -11,13 +11,13 @@ the model is a set of calibrated cameras and a coloured cloud, ready for
 from __future__ import annotations
 
 import io as _io
-import os
 from pathlib import Path
 
 import numpy as np
 
 from pis3r import io
 from pis3r.camera import Camera
+from pis3r.errors import InputError
 from pis3r.scene import Scene
 
 CANVAS_IMAGE_NAME = "stitched.png"
@@ -101,8 +101,13 @@ def colmap_text_files(scene: Scene, canvas_camera: Camera, max_points: int = 100
     """``{file name: bytes}`` of the COLMAP text model of a stitch: the ``scene``'s views and
     points and the ``canvas_camera`` (see the module docstring).
 
-    Camera/image ids ``1..N`` are the inputs in input order, ``N + 1`` the canvas.
+    Camera/image ids ``1..N`` are the inputs in input order, ``N + 1`` the canvas. A canvas
+    that is no pinhole (a panorama's: :class:`pis3r.projection.PanoramaCamera`) has no COLMAP
+    camera model: :class:`pis3r.errors.InputError`.
     """
+    if not isinstance(canvas_camera, Camera):
+        raise InputError(f"COLMAP's text model holds pinhole cameras, and this canvas is {canvas_camera.model}: "
+                         f"stitch with --projection perspective to export one")
     cameras = [view.camera for view in scene.views] + [canvas_camera]
     names = _image_names(scene) + [CANVAS_IMAGE_NAME]
     points, colors = subsample_points(*scene.point_cloud(), max_points)
@@ -111,15 +116,3 @@ def colmap_text_files(scene: Scene, canvas_camera: Camera, max_points: int = 100
         "images.txt": _images_text(cameras, names).encode(),
         "points3D.txt": _points_text(points, colors).encode(),
     }
-
-
-def write_colmap_text(
-    scene: Scene, canvas_camera: Camera, directory: str | os.PathLike, max_points: int = 100_000
-) -> list[Path]:
-    """Write ``cameras.txt``, ``images.txt``, ``points3D.txt`` into ``directory``, each atomically."""
-    directory = Path(directory)
-    written = []
-    for name, data in colmap_text_files(scene, canvas_camera, max_points).items():
-        io.write_bytes(directory / name, data)
-        written.append(directory / name)
-    return written

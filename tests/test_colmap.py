@@ -6,7 +6,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from pis3r.colmap import colmap_quaternion, write_colmap_text
+from pis3r.colmap import colmap_quaternion, colmap_text_files
 
 
 def test_quaternion_is_colmap_order_with_positive_w():
@@ -22,7 +22,8 @@ def test_quaternion_is_colmap_order_with_positive_w():
 
 
 def test_pycolmap_reads_cameras_poses_and_points(small_result, tmp_path):
-    write_colmap_text(small_result.scene, small_result.camera, tmp_path, max_points=500)
+    for name, data in colmap_text_files(small_result.scene, small_result.camera, max_points=500).items():
+        (tmp_path / name).write_bytes(data)
     model = pycolmap.Reconstruction(str(tmp_path))
     cameras = [view.camera for view in small_result.scene.views] + [small_result.camera]
     assert model.num_cameras() == model.num_images() == len(cameras)

@@ -391,7 +391,8 @@ def test_colours_are_sampled_block_by_block_as_in_one_pass():
     lenses = [exposure.Exposure(np.array([0.9, 1.1, 1.0], np.float32), (-0.4, 0.1), 0.5),
               exposure.Exposure(np.array([1.2, 0.8, 1.05], np.float32))]
     rasterised = raster.Raster(layer, np.ones(layer.shape, np.float32), uv)
-    sampled = render._sample_colours(Scene([views[0], *views]), rasterised, [1, 2], lenses, canvas_K)
+    sampled = render.sample_colours(Scene([views[0], *views]), rasterised, [1, 2], lenses,
+                                   functools.partial(exposure.grid_squared_tangents, canvas_K))
     whole = np.zeros_like(sampled)
     for k, (view, lens) in enumerate(zip(views, lenses)):
         expected = cv2.remap(view.image, uv, None, render.COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)

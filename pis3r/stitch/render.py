@@ -33,7 +33,8 @@ Which surfaces enter the canvas (on top of the mesh's cut rule):
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -41,10 +42,11 @@ import numpy as np
 from pis3r.camera import Camera
 from pis3r.io import CONVERT_ROWS
 from pis3r.mesh import MESH_MAX_SIDE, grid_corners, grid_faces, grid_vertices, signed_area, used_vertices, view_mesh
-from pis3r.scene import Deferrable, Deferred, Scene
+from pis3r.scene import Deferred, Scene
 from pis3r.stitch.blend import BAND_FRACTION
 from pis3r.stitch.exposure import (MIN_SAMPLES, NEUTRAL, Exposure, corner_t2, fit_exposure, grid_squared_tangents,
                                    squared_tangents)
+from pis3r.stitch.canvas import Canvas, SurfaceCounts
 from pis3r.stitch.raster import Raster, Triangles, rasterise
 
 # Points closer than this (relative to the median scene depth) are numerically on
@@ -64,62 +66,6 @@ COLOUR_INTERPOLATION = cv2.INTER_CUBIC
 
 
 @dataclass
-class SurfaceCounts:
-    """Triangles of one view's mesh: ``meshed`` (two per grid block), ``cut`` by the mesh's
-    cut rule (missing depth, grazing angle), ``behind`` (a vertex on or behind the
-    reference's camera plane), ``back_facing``, ``stretched`` (beyond ``MAX_STRETCH``),
-    and ``rendered`` (the rest, drawn into the z-buffer)."""
-
-    view: int
-    meshed: int
-    cut: int
-    behind: int
-    back_facing: int
-    stretched: int
-    rendered: int
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-@dataclass
-class Canvas:
-    """The z-buffered rendering of a scene onto the reference camera.
-
-    ``image``: ``(H, W, 3)`` float32; ``depth``: ``(H, W)`` float32 z in the reference
-    frame (``inf`` where empty; computed when first read, since it needs the reference's own
-    depth, which a stitch does not otherwise read: :class:`pis3r.scene.Deferred`);
-    ``source``: ``(H, W)`` int16 index of the view whose surface won (``-1`` where empty);
-    ``camera``: the canvas camera; ``ref_offset``:
-    ``(x, y)`` canvas pixel of the reference's pixel ``(0, 0)``;
-    ``dropped_points``: mesh vertices of rendered triangles that fell outside the capped
-    canvas; ``under_reference``: ``(h, w, 3)`` what the other views put where the
-    reference (``h x w``) is pasted, and ``under_valid`` ``(h, w)`` bool where they put
-    anything (the overlap that blending across the reference border works from);
-    ``surfaces``: per other view, which of its triangles entered the canvas
-    (:class:`SurfaceCounts`; ``[s.to_dict() for s in surfaces]`` for a report);
-    ``exposures``: view index to the :class:`~pis3r.stitch.exposure.Exposure` its colours
-    were brought to the reference's by (gain and lens falloff).
-    """
-
-    image: np.ndarray
-    depth: np.ndarray = Deferrable()
-    source: np.ndarray
-    camera: Camera
-    ref_offset: tuple[int, int]
-    dropped_points: int
-    under_reference: np.ndarray | None = None
-    under_valid: np.ndarray | None = None
-    surfaces: list[SurfaceCounts] = field(default_factory=list)
-    exposures: dict[int, Exposure] = field(default_factory=dict)
-
-    @property
-    def occupied(self) -> np.ndarray:
-        """``(H, W)`` bool: pixels that received a surface (or the reference itself)."""
-        return self.source >= 0
-
-
-@dataclass
 class _ViewSurface:
     """One view's triangles in the reference camera: ``xy`` ``(N, 2)`` reference pixels,
     ``z`` ``(N,)`` reference depth, ``uv`` ``(N, 2)`` source pixels, ``faces`` ``(M, 3)``."""
@@ -131,21 +77,30 @@ class _ViewSurface:
     faces: np.ndarray
 
 
-def _surfaces(scene: Scene, ref_index: int, max_stretch: float):
-    """Every other view's cut mesh in the reference camera (the rules of the module
-    docstring applied), and its :class:`SurfaceCounts`."""
+def _surfaces(scene: Scene, ref_index: int, max_stretch: float, project=None, coarse: bool = True,
+              meshes: list | None = None):
+    """Every other view's cut mesh on the canvas (the rules of the module docstring applied), and
+    its :class:`SurfaceCounts`. ``project(placed)``: the ``(xy, z)`` copies of a mesh placed by
+    :func:`_mesh_in_reference` on the canvas (by default one, in the reference camera: its pixels
+    and depth; a panorama draws a view that crosses its seam twice, a turn apart); ``coarse``:
+    whether blocks deep inside the reference (a window of the canvas) are drawn coarsely;
+    ``meshes``: the other views' placed meshes where already made."""
     ref = scene.views[ref_index].camera
     others = [index for index in range(len(scene.views)) if index != ref_index]
+    project = project or (lambda placed: [_into_reference(scene, ref, placed)])
     # Each view's surface is its own, but for the nearest depth any of them may have: two views
     # at a time (numpy releases the GIL on their grids' arrays).
     with ThreadPoolExecutor(2) as pool:
-        meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
-        z_all = np.concatenate([points[..., 2][grid_vertices(mesh.keep)] for _, mesh, points, _ in meshes
+        meshes = meshes or list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
+        copies = list(pool.map(project, meshes))
+        z_all = np.concatenate([z[grid_vertices(mesh.keep)] for (_, mesh, points, _), ((_, z), *_) in zip(meshes, copies)
                                 if points is not None] or [[]])
         positive = z_all[z_all > 0]
         min_z = max(MIN_RELATIVE_DEPTH * float(np.median(positive)) if positive.size else 0.0, 1e-9)
-        cut = list(pool.map(lambda placed: _cut_surface(scene, ref, placed, min_z, max_stretch), meshes))
-    return [surface for surface, _ in cut], [counts for _, counts in cut]
+        window = (ref.width, ref.height) if coarse else None
+        cut = list(pool.map(lambda job: [_cut_surface(job[0], xy, z, min_z, max_stretch, window) for xy, z in job[1]],
+                            zip(meshes, copies)))
+    return [surface for view in cut for surface, _ in view], [view[0][1] for view in cut]
 
 
 def _mesh_in_reference(scene: Scene, index: int, ref_index: int):
@@ -167,19 +122,28 @@ def _mesh_in_reference(scene: Scene, index: int, ref_index: int):
     return index, mesh, points, ref.focal / cam.focal
 
 
-def _cut_surface(scene: Scene, ref: Camera, placed, min_z: float, max_stretch: float):
-    """``(_ViewSurface, SurfaceCounts)`` of one view's mesh ``placed`` (:func:`_mesh_in_reference`)
-    in the reference camera ``ref``: its faces nearer than ``min_z``, back-facing or stretched
-    beyond ``max_stretch`` cut."""
-    index, mesh, points, focal_ratio = placed
+def _into_reference(scene: Scene, ref: Camera, placed) -> tuple[np.ndarray, np.ndarray]:
+    """``(xy (rows, cols, 2), z (rows, cols))``: a mesh ``placed`` (:func:`_mesh_in_reference`) in
+    the reference camera ``ref``'s pixels and depth (a view placed by local homographies: its
+    warp's pixels, at unit depth)."""
+    index, mesh, points, _ = placed
     if points is None:
         z = np.ones(mesh.points.shape[:2], np.float32)
-        xy = scene.views[index].warp.apply(mesh.pixels).reshape(z.shape + (2,))
-    else:
-        z = points[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
-                           ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
+        return scene.views[index].warp.apply(mesh.pixels).reshape(z.shape + (2,)), z
+    z = points[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = np.stack([ref.K[0, 0] * points[..., 0] / z + ref.K[0, 2],
+                       ref.K[1, 1] * points[..., 1] / z + ref.K[1, 2]], -1).astype(np.float32)
+    return xy, z
+
+
+def _cut_surface(placed, xy: np.ndarray, z: np.ndarray, min_z: float, max_stretch: float,
+                 window: tuple[int, int] | None):
+    """``(_ViewSurface, SurfaceCounts)`` of one view's mesh ``placed`` (:func:`_mesh_in_reference`)
+    at canvas pixels ``xy`` ``(rows, cols, 2)`` and depth ``z`` ``(rows, cols)``: its faces nearer
+    than ``min_z``, back-facing or stretched beyond ``max_stretch`` cut; those deep inside the
+    reference's ``window`` ``(width, height)`` (at the canvas's origin) drawn coarsely."""
+    index, mesh, _, focal_ratio = placed
     in_front = np.all(grid_corners((z > min_z) & np.isfinite(xy).all(axis=-1)), axis=0)
     canvas_area = signed_area(*grid_corners(xy))
     front_facing = canvas_area > 0
@@ -196,7 +160,7 @@ def _cut_surface(scene: Scene, ref: Camera, placed, min_z: float, max_stretch: f
         view=index, meshed=mesh.keep.size, cut=mesh.cut, behind=behind, back_facing=back_facing,
         stretched=stretched, rendered=int(kept.sum()),
     )
-    faces = _faces_coarse_under_reference(kept, xy, ref.width, ref.height)
+    faces = grid_faces(kept) if window is None else _faces_coarse_under_reference(kept, xy, *window)
     return _ViewSurface(index, xy.reshape(-1, 2), z.reshape(-1), mesh.pixels, faces), counts
 
 
@@ -265,6 +229,15 @@ def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_cam
     reference = ref_image[::stride, ::stride].reshape(-1, 3)
     t2_ref = grid_squared_tangents(ref_camera.K, slice(0, ref_image.shape[0], stride),
                                    slice(0, ref_image.shape[1], stride)).ravel()
+    return fit_exposures(scene, layer, uv, indices, reference, t2_ref, ref_camera)
+
+
+def fit_exposures(scene: Scene, layer: np.ndarray, uv: np.ndarray, indices: list[int], reference: np.ndarray,
+                  t2_ref: np.ndarray, ref_camera: Camera) -> list[Exposure]:
+    """Per layer ``k`` (view ``indices[k]``), its :class:`~pis3r.stitch.exposure.Exposure` from the
+    canvas samples inside the reference: ``layer`` ``(N,)`` the winning layer of each, ``uv``
+    ``(N, 2)`` the view pixel it shows, ``reference`` ``(N, 3)`` the reference's colour there and
+    ``t2_ref`` ``(N,)`` the squared tangent of its reference pixel (``ref_camera``)."""
     ref_t2_max = corner_t2(ref_camera.K, ref_camera.width, ref_camera.height)
     exposures = []
     for k, index in enumerate(indices):
@@ -280,12 +253,12 @@ def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_cam
     return exposures
 
 
-def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures: list[Exposure],
-                    canvas_K: np.ndarray) -> np.ndarray:
+def sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures: list[Exposure],
+                   canvas_t2) -> np.ndarray:
     """``(H, W, 3)`` float32: at every pixel whose ``raster.layer`` is ``k``, view ``indices[k]``'s
     full-resolution image sampled at ``raster.uv`` (``cv2.remap``, ``COLOUR_INTERPOLATION``)
-    and brought to the reference camera by ``exposures[k]`` (``canvas_K``: the canvas's
-    intrinsics); 0 where no layer."""
+    and brought to the reference camera by ``exposures[k]`` (``canvas_t2(rows, cols)``: the
+    squared tangents, in the reference camera, of a block of canvas pixels); 0 where no layer."""
     image = np.zeros(raster.layer.shape + (3,), np.float32)
 
     def sample(k: int, rows: slice, cols: slice) -> None:
@@ -297,7 +270,7 @@ def _sample_colours(scene: Scene, raster: Raster, indices: list[int], exposures:
         sampled = cv2.remap(view.image, uv, None, COLOUR_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
         exposure = exposures[k]
         if any(exposure.falloff):
-            exposure.apply(sampled, grid_squared_tangents(canvas_K, rows, cols), squared_tangents(uv, view.camera.K))
+            exposure.apply(sampled, canvas_t2(rows, cols), squared_tangents(uv, view.camera.K))
         elif (exposure.gain != 1).any():
             exposure.apply_gain(sampled)
         # Bicubic overshoots at sharp edges; a gain may push past white.
@@ -361,7 +334,7 @@ def render_to_canvas(
     exposures = (_exposures(scene, raster, indices, window, ref, ref_view.image) if match_exposure
                  else [NEUTRAL] * len(indices))
     canvas_camera = ref.shifted(ox, oy, width, height)
-    image = _sample_colours(scene, raster, indices, exposures, canvas_camera.K)
+    image = sample_colours(scene, raster, indices, exposures, partial(grid_squared_tangents, canvas_camera.K))
     # Layer -1 (empty) picks the trailing -1.
     source = np.asarray(indices + [-1], np.int16)[raster.layer]
     under_reference, under_valid = image[window].copy(), source[window] >= 0

@@ -1,0 +1,257 @@
+"""Rendering every view's surface onto a cylinder or a sphere around the reference camera (issue 41).
+
+The perspective canvas (:mod:`pis3r.stitch.render`) holds what the reference camera could see
+on a larger image, which ends at about 120 deg. A panorama holds every direction: each view's
+cut mesh is placed in the reference camera's frame exactly as there (through its depth, or for
+a rotation through depth 1: rays at infinity), then every vertex goes to the canvas pixel of its
+ray from the reference camera's centre (:class:`pis3r.projection.PanoramaCamera`), with its
+distance from that centre for the z-buffer, and colours are sampled bicubically from the
+full-resolution photos at the sub-pixel position the rasteriser interpolates.
+
+- The frame is levelled (:func:`pis3r.projection.level_rotation`): the horizon of a turn is a
+  straight row.
+- Longitudes: the canvas spans the views' arcs; where they close the circle it is a full
+  turn, the reference in the middle. A view whose arc crosses the canvas's edge is drawn twice,
+  a turn apart, each copy continuous (a photo spans less than half a turn), and each clipped
+  by the canvas: no triangle is stretched across it.
+- The reference keeps its pixels' rays: where it sees, the canvas shows the reference sampled
+  at the pixel of the canvas pixel's ray (bicubic, the projection's only resampling).
+- Exposure: each view's gain and falloff fitted where it lands inside the reference, as on the
+  perspective canvas; a view that does not overlap the reference keeps its colours.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+
+from pis3r.mesh import grid_vertices
+from pis3r.projection import (CYLINDER_LATITUDE_LIMIT_DEG, CYLINDER_MAX_LATITUDE_DEG, PanoramaCamera, canvas_pixels,
+                              canvas_rays, level_rotation)
+from pis3r.scene import Deferred, Scene
+from pis3r.stitch.canvas import Canvas
+from pis3r.stitch.exposure import NEUTRAL, squared_tangents
+from pis3r.stitch.raster import Triangles, rasterise
+from pis3r.stitch.render import (COLOUR_INTERPOLATION, GAIN_SAMPLES, MAX_STRETCH, _mesh_in_reference, _surfaces,
+                                 fit_exposures, sample_colours)
+
+# A panorama keeps the reference's resolution at its centre unless that makes more than this many
+# pixels: then it is rendered at the scale that fits (a full turn of 8 MP phone photos is about
+# 19000 x 4000 at their focal).
+PANORAMA_MAX_PIXELS = 80_000_000
+# Longitudes are binned this finely to find the arc the views leave uncovered.
+ARC_BINS = 3600
+# Points sampled along each side of the reference's border to find its footprint on the canvas.
+BORDER_SAMPLES = 64
+
+
+def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirectangular", match_exposure: bool = True,
+                       raster_backend: str = "auto", max_stretch: float = MAX_STRETCH,
+                       max_pixels: int = PANORAMA_MAX_PIXELS) -> Canvas:
+    """Render every view's surface of ``scene`` onto a ``model`` (``cylindrical`` or
+    ``equirectangular``) canvas around camera ``ref_index`` (module docstring), with the
+    reference's rays sampled from its photo. ``max_pixels`` caps the canvas's size."""
+    ref_view = scene.views[ref_index]
+    ref = ref_view.camera
+    others = [index for index in range(len(scene.views)) if index != ref_index]
+    world_to_canvas = level_rotation([ref.R] + [scene.views[index].camera.R for index in others])
+    to_canvas = world_to_canvas @ ref.R.T  # from the reference camera's frame
+    with ThreadPoolExecutor(2) as pool:
+        meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
+        rays = dict(pool.map(lambda placed: (placed[0], _canvas_frame_rays(scene, ref.K, to_canvas, placed)), meshes))
+    border = _border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
+    used = [rays[index][grid_vertices(mesh.keep)] for index, mesh, _, _ in meshes]
+    camera = _panorama_camera(model, world_to_canvas, -ref.R.T @ ref.t, float(ref.K[0, 0]), [border, *used],
+                              max_pixels)
+    first_copies = {}
+
+    def project(placed):
+        first_copies[placed[0]] = copies = _on_canvas(camera, rays[placed[0]])
+        return copies
+
+    surfaces, counts = _surfaces(scene, ref_index, max_stretch, project, coarse=False, meshes=meshes)
+    raster = rasterise([Triangles(s.xy, s.z, s.uv, s.faces) for s in surfaces], camera.width, camera.height,
+                       raster_backend)
+    indices = [s.view for s in surfaces]
+    box, ref_pixels = _reference_footprint(camera, to_canvas, ref.K, ref.width, ref.height, border)
+    inside = np.isfinite(ref_pixels[..., 0])
+    map_xy = np.where(inside[..., None], ref_pixels, -1e4).astype(np.float32)
+    ref_colours = np.clip(cv2.remap(ref_view.image, map_xy, None, COLOUR_INTERPOLATION,
+                                    borderMode=cv2.BORDER_REPLICATE), 0.0, 1.0)
+    exposures = [NEUTRAL] * len(indices)
+    if match_exposure and inside.any():
+        # A regular grid of about GAIN_SAMPLES of the reference's pixels on the canvas.
+        stride = max(1, int((inside.sum() / GAIN_SAMPLES) ** 0.5))
+        grid = (slice(box[0].start, box[0].stop, stride), slice(box[1].start, box[1].stop, stride))
+        chosen = inside[::stride, ::stride].ravel()
+        exposures = fit_exposures(scene, raster.layer[grid].ravel()[chosen], raster.uv[grid].reshape(-1, 2)[chosen],
+                                  indices, ref_colours[::stride, ::stride].reshape(-1, 3)[chosen],
+                                  squared_tangents(ref_pixels[::stride, ::stride].reshape(-1, 2)[chosen], ref.K), ref)
+    # Beyond the reference a view's falloff is removed: its colours brought to the lens's centre.
+    image = sample_colours(scene, raster, indices, exposures,
+                           lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32))
+    source = np.asarray(indices + [-1], np.int16)[raster.layer]
+    np.copyto(image[box], ref_colours, where=inside[..., None])
+    source[box][inside] = ref_index
+    corner = camera.rays_to_pixels(border[:1] @ world_to_canvas)[0]
+    beyond = sum(int((~np.isfinite(first_copies[index][0][0]).all(axis=-1) & grid_vertices(mesh.keep)).sum())
+                 for index, mesh, _, _ in meshes)
+
+    def depth_with_reference() -> np.ndarray:
+        depth = raster.z
+        ref_depth = cv2.remap(np.where(ref_view.valid > 0, ref_view.depth, np.inf).astype(np.float32), map_xy, None,
+                              cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        ray_length = np.hypot(np.hypot((map_xy[..., 0] - ref.K[0, 2]) / ref.K[0, 0],
+                                       (map_xy[..., 1] - ref.K[1, 2]) / ref.K[1, 1]), 1.0)
+        depth[box][inside] = (ref_depth * ray_length)[inside]
+        return depth
+
+    return Canvas(image=image, depth=Deferred(depth_with_reference), source=source, camera=camera,
+                  ref_offset=(int(round(corner[0])), int(round(corner[1]))), dropped_points=beyond,
+                  surfaces=counts, exposures=dict(zip(indices, exposures)))
+
+
+def _canvas_frame_rays(scene: Scene, K_ref: np.ndarray, to_canvas: np.ndarray, placed) -> np.ndarray:
+    """``(rows, cols, 3)``: a placed mesh's points (:func:`pis3r.stitch.render._mesh_in_reference`)
+    in the canvas frame, their length the distance from the reference camera's centre (a view
+    placed by local homographies onto the reference: the rays of the reference pixels it lands
+    on, at unit depth)."""
+    index, mesh, points, _ = placed
+    if points is None:
+        xy = scene.views[index].warp.apply(mesh.pixels).reshape(mesh.points.shape[:2] + (2,))
+        points = np.concatenate([(xy - K_ref[:2, 2]) / np.diag(K_ref)[:2], np.ones(xy.shape[:2] + (1,))], axis=-1)
+    return (points @ to_canvas.T).astype(np.float64)
+
+
+def _border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(4 BORDER_SAMPLES, 3)`` rays of pixels along a camera's border (its frame), the first
+    that of pixel ``(0, 0)``."""
+    xs, ys = np.linspace(0, width - 1, BORDER_SAMPLES), np.linspace(0, height - 1, BORDER_SAMPLES)
+    pixels = np.concatenate([np.stack([xs, np.zeros_like(xs)], 1), np.stack([np.full_like(ys, width - 1), ys], 1),
+                             np.stack([xs[::-1], np.full_like(xs, height - 1)], 1),
+                             np.stack([np.zeros_like(ys), ys[::-1]], 1)])
+    return np.hstack([pixels, np.ones((len(pixels), 1))]) @ np.linalg.inv(K).T
+
+
+def _panorama_camera(model: str, world_to_canvas: np.ndarray, centre: np.ndarray, scale: float,
+                     ray_sets: list[np.ndarray], max_pixels: int) -> PanoramaCamera:
+    """The canvas centred on ``centre`` that holds every ray of ``ray_sets`` (each ``(N, 3)`` in the
+    canvas frame, one view's, spanning less than half a turn) at ``scale`` pixels per radian, or
+    at the scale at which it has at most ``max_pixels`` pixels."""
+    covered = np.zeros(ARC_BINS, bool)
+    second = []
+    limit = np.tan(np.radians(CYLINDER_LATITUDE_LIMIT_DEG))
+    for rays in ray_sets:
+        rays = rays[np.isfinite(rays).all(axis=1) & (np.hypot(rays[:, 0], rays[:, 2]) > 0)]
+        if not len(rays):
+            continue
+        lon = np.arctan2(rays[:, 0], rays[:, 2])
+        middle = np.arctan2(*rays.sum(axis=0)[[0, 2]])
+        relative = np.angle(np.exp(1j * (lon - middle)))
+        first = int(np.floor((middle + relative.min() + np.pi) / (2 * np.pi) * ARC_BINS))
+        count = int(np.ceil((relative.max() - relative.min()) / (2 * np.pi) * ARC_BINS)) + 1
+        covered[np.arange(first, first + count) % ARC_BINS] = True
+        values = canvas_pixels(model, rays, 1.0, (0.0, 0.0))[:, 1]
+        second.append(values if model == "equirectangular" else np.clip(values, -limit, limit))
+    second = np.concatenate(second)
+    gap_start, gap_length = _longest_gap(covered)
+    if gap_length == 0:
+        lon0, span = -np.pi, 2 * np.pi
+    else:
+        lon0 = (gap_start + gap_length) / ARC_BINS * 2 * np.pi - np.pi
+        span = (ARC_BINS - gap_length) / ARC_BINS * 2 * np.pi
+    low, high = float(second.min()), float(second.max())
+    size = span * (high - low) * scale**2
+    if size > max_pixels:
+        scale *= (max_pixels / size) ** 0.5
+    if gap_length == 0:
+        width = int(round(2 * np.pi * scale))
+        scale = width / (2 * np.pi)
+    else:
+        width = int(np.ceil(span * scale)) + 1
+    return PanoramaCamera(model, world_to_canvas, centre, scale, (lon0, low), width,
+                          int(np.ceil((high - low) * scale)) + 1)
+
+
+def _longest_gap(covered: np.ndarray) -> tuple[int, int]:
+    """``(first bin, length)`` of the longest circular run of uncovered bins (length 0: none)."""
+    if covered.all():
+        return 0, 0
+    # Rolled to start just after a covered bin, no run wraps.
+    shift = int(np.flatnonzero(covered)[-1]) + 1 if covered.any() else 0
+    rolled = np.roll(~covered, -shift)
+    edges = np.diff(np.concatenate([[0], rolled.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    longest = int(np.argmax(ends - starts))
+    return (int(starts[longest]) + shift) % len(covered), int(ends[longest] - starts[longest])
+
+
+def _on_canvas(camera: PanoramaCamera, rays: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``[(xy (rows, cols, 2), distance (rows, cols)), ...]``: canvas-frame ``rays`` of one view's
+    mesh on ``camera``, continuous across the canvas's edge, and a copy a turn away where the
+    view crosses the edge of a full turn (NaN: a cylinder's rays beyond its latitude limit)."""
+    shape = rays.shape[:2]
+    flat = rays.reshape(-1, 3)
+    pixels = canvas_pixels(camera.model, flat, camera.scale, camera.origin)
+    if camera.model == "cylindrical":
+        steep = np.abs(flat[:, 1]) > np.tan(np.radians(CYLINDER_LATITUDE_LIMIT_DEG)) * np.hypot(flat[:, 0], flat[:, 2])
+        pixels[steep] = np.nan
+    turn = 2 * np.pi * camera.scale
+    finite = np.isfinite(pixels[:, 0])
+    if finite.any():
+        centre = camera.rays_to_pixels(flat[finite].sum(axis=0, keepdims=True) @ camera.R)[0, 0]
+        pixels[:, 0] = centre + np.mod(pixels[:, 0] - centre + turn / 2, turn) - turn / 2
+    xy = pixels.reshape(shape + (2,)).astype(np.float32)
+    distance = np.linalg.norm(rays, axis=-1).astype(np.float32)
+    copies = [(xy, distance)]
+    if camera.full_turn and finite.any():
+        for shift in (-turn, turn):
+            moved = pixels[finite, 0] + shift
+            if ((moved >= -0.5) & (moved <= camera.width - 0.5)).any():
+                copy = xy.copy()
+                copy[..., 0] += shift
+                copies.append((copy, distance))
+    return copies
+
+
+def _reference_footprint(camera: PanoramaCamera, to_canvas: np.ndarray, K: np.ndarray, width: int, height: int,
+                         border: np.ndarray) -> tuple[tuple[slice, slice], np.ndarray]:
+    """``(box, pixels)``: the canvas rows and columns around the reference's footprint, and at
+    each pixel of that box ``(h, w, 2)`` the reference pixel its ray goes through (NaN where it
+    misses the reference)."""
+    corners = camera.rays_to_pixels(border @ camera.R)
+    x0, y0 = np.maximum(np.floor(np.nanmin(corners, axis=0)).astype(int), 0)
+    x1 = min(int(np.ceil(np.nanmax(corners[:, 0]))) + 1, camera.width)
+    y1 = min(int(np.ceil(np.nanmax(corners[:, 1]))) + 1, camera.height)
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    rays = canvas_rays(camera.model, np.stack([xs.ravel(), ys.ravel()], 1), camera.scale, camera.origin) @ to_canvas
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pixels = np.stack([K[0, 0] * rays[:, 0] / rays[:, 2] + K[0, 2], K[1, 1] * rays[:, 1] / rays[:, 2] + K[1, 2]], 1)
+    outside = ((rays[:, 2] <= 0) | (pixels[:, 0] < -0.5) | (pixels[:, 0] > width - 0.5)
+               | (pixels[:, 1] < -0.5) | (pixels[:, 1] > height - 0.5))
+    pixels[outside] = np.nan
+    return (slice(y0, y1), slice(x0, x1)), pixels.reshape(ys.shape + (2,)).astype(np.float32)
+
+
+def choose_projection(scene: Scene, ref_index: int, max_canvas_scale: float) -> str:
+    """``projection="auto"``'s choice (:mod:`pis3r.projection`): ``perspective`` while every
+    view's border, seen from the reference camera's centre (its rays: parallax aside), lands in
+    front of the reference camera on a canvas at most ``max_canvas_scale`` times its size;
+    otherwise ``cylindrical`` where every border ray stays within ``CYLINDER_MAX_LATITUDE_DEG``
+    of the level horizon, else ``spherical``."""
+    ref = scene.views[ref_index].camera
+    rays = np.concatenate([
+        _border_rays(view.camera.K, view.camera.width, view.camera.height) @ (ref.R @ view.camera.R.T).T
+        for view in scene.views])
+    in_front = rays[:, 2] > 1e-6 * np.linalg.norm(rays, axis=1)
+    if in_front.all():
+        pixels = rays[:, :2] / rays[:, 2:] * np.diag(ref.K)[:2] + ref.K[:2, 2]
+        spans = np.maximum(pixels.max(axis=0), [ref.width - 1, ref.height - 1]) - np.minimum(pixels.min(axis=0), 0)
+        if np.all(spans + 1 <= max_canvas_scale * np.array([ref.width, ref.height])):
+            return "perspective"
+    level = rays @ (level_rotation([ref.R] + [v.camera.R for i, v in enumerate(scene.views) if i != ref_index])
+                    @ ref.R.T).T
+    latitude = np.degrees(np.arctan2(np.abs(level[:, 1]), np.hypot(level[:, 0], level[:, 2])))
+    return "cylindrical" if latitude.max() <= CYLINDER_MAX_LATITUDE_DEG else "spherical"

@@ -1,0 +1,145 @@
+"""Panorama canvases (pis3r.projection, pis3r.stitch.panorama): the camera model both ways, the
+levelled frame, and a ring of rotated views rendered onto a sphere and a cylinder, judged
+against the synthetic world they were photographed from."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from skimage import data
+
+import pis3r
+from pis3r.camera import Camera, intrinsics
+from pis3r.errors import InputError
+from pis3r.projection import PanoramaCamera, canvas_pixels, level_rotation
+from pis3r.scene import Scene, View
+from pis3r.stitch.panorama import choose_projection, render_to_panorama
+
+W, H, F = 160, 120, 80.0  # 90 deg across
+
+
+def world_colour(rays: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` colours of a smooth synthetic world, one per direction ``(N, 3)``."""
+    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    lon, lat = np.arctan2(rays[:, 0], rays[:, 2]), np.arcsin(np.clip(rays[:, 1], -1, 1))
+    return np.stack([0.5 + 0.4 * np.sin(3 * lon), 0.5 + 0.4 * np.cos(2 * lon + 3 * lat),
+                     0.5 + 0.4 * np.sin(4 * lat)], axis=1).astype(np.float32)
+
+
+def photographed(R: np.ndarray, frame: np.ndarray = np.eye(3)) -> View:
+    """The view of the synthetic world from the origin by a camera of world-to-camera ``R``,
+    as a rotation's view (depth 1) in a scene whose frame is ``frame`` times the world's."""
+    K = intrinsics(F, W, H)
+    ys, xs = np.mgrid[0:H, 0:W]
+    rays = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], 1) @ np.linalg.inv(K).T @ R
+    image = world_colour(rays).reshape(H, W, 3)
+    return View(image, Camera(K, R @ frame.T, np.zeros(3), W, H), np.ones((H, W), np.float32),
+                np.ones((H, W), np.float32))
+
+
+def yaw_pitch(yaw_deg: float, pitch_deg: float = 0.0) -> np.ndarray:
+    """World-to-camera rotation of a camera turned ``yaw_deg`` about the vertical, then tilted."""
+    return Rotation.from_euler("xy", [pitch_deg, yaw_deg], degrees=True).as_matrix().T
+
+
+def ring(count: int = 8, pitch_deg: float = 0.0, start_deg: float = 0.0) -> Scene:
+    """``count`` views turning a full circle; the reference (the first) tilted by ``pitch_deg``.
+    World frame: the reference camera's (the convention of every Scene)."""
+    rotations = [yaw_pitch(start_deg + 360.0 * k / count) for k in range(count)]
+    rotations[0] = yaw_pitch(start_deg, pitch_deg)
+    # The scene's world is the reference camera's frame.
+    return Scene([photographed(R, rotations[0]) for R in rotations]), rotations[0]
+
+
+@pytest.mark.parametrize("model", ["equirectangular", "cylindrical"])
+def test_canvas_pixels_and_rays_map_both_ways(model):
+    rng = np.random.default_rng(0)
+    R = Rotation.random(random_state=1).as_matrix()
+    camera = PanoramaCamera(model, R, [0.5, -1.0, 2.0], 300.0, (-2.5, -0.7), 1500, 420)
+    pixels = rng.random((500, 2)) * [camera.width - 1, camera.height - 1]
+    rays = camera.pixels_to_rays(pixels)
+    np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(camera.rays_to_pixels(rays), pixels, atol=1e-8)
+    # Any length, and the points on those rays seen from the centre.
+    np.testing.assert_allclose(camera.rays_to_pixels(3.0 * rays), pixels, atol=1e-8)
+    on_canvas, distance = camera.points_to_pixels(camera.centre + 2.0 * rays)
+    np.testing.assert_allclose(on_canvas, pixels, atol=1e-8)
+    np.testing.assert_allclose(distance, 2.0)
+    directions = Rotation.random(50, random_state=2).apply([0.0, 0.0, 1.0])
+    directions = directions[np.abs(directions @ R[1]) < 0.9]  # a cylinder holds no vertical ray
+    back = camera.pixels_to_rays(camera.rays_to_pixels(directions))
+    np.testing.assert_allclose(back, directions, atol=1e-12)
+
+
+def test_the_formulae_of_the_readme():
+    """Straight ahead is longitude 0 and latitude 0; v grows downward; u by pixels_per_radian."""
+    camera = PanoramaCamera("equirectangular", np.eye(3), np.zeros(3), 100.0, (-np.pi, -0.5), 629, 101)
+    np.testing.assert_allclose(camera.rays_to_pixels(np.array([[0.0, 0.0, 1.0]])), [[100 * np.pi, 50.0]])
+    np.testing.assert_allclose(canvas_pixels("cylindrical", np.array([[1.0, 1.0, 0.0]]), 100.0, (0.0, 0.0)),
+                               [[100 * np.pi / 2, 100.0]])
+    assert camera.full_turn and not PanoramaCamera("cylindrical", np.eye(3), np.zeros(3), 100.0, (0, 0), 600,
+                                                   10).full_turn
+    assert camera.to_dict()["model"] == "equirectangular" and camera.to_dict()["lat0_rad"] == -0.5
+
+
+def test_the_level_frame_is_the_turn_s_vertical():
+    axis = np.array([0.1, 1.0, -0.2])
+    axis /= np.linalg.norm(axis)
+    tilted = Rotation.from_rotvec(np.cross([0, 1, 0], axis) / np.linalg.norm(np.cross([0, 1, 0], axis))
+                                  * np.arccos(axis[1])).as_matrix()
+    # Cameras turning about ``axis`` (the world's y axis tilted), each also pitched the same.
+    rotations = [yaw_pitch(yaw, 20.0) @ tilted.T for yaw in (0, 40, 80, 120)]
+    level = level_rotation(rotations)
+    np.testing.assert_allclose(level[1], axis, atol=1e-9)
+    np.testing.assert_allclose(level @ level.T, np.eye(3), atol=1e-12)
+    # Two cameras leave the vertical free: the reference's own down is kept.
+    np.testing.assert_allclose(level_rotation(rotations[:2])[1], rotations[0][1], atol=1e-12)
+
+
+@pytest.mark.parametrize("model", ["equirectangular", "cylindrical"])
+def test_a_full_turn_shows_the_world_it_was_photographed_from(model):
+    """Eight views 45 deg apart, the reference tilted 10 deg: the levelled canvas closes the
+    circle, every view is placed, and every pixel shows the colour of the world in its ray."""
+    scene, to_reference = ring(pitch_deg=10.0)
+    canvas = render_to_panorama(scene, 0, model)
+    camera = canvas.camera
+    assert camera.full_turn and camera.width == round(2 * np.pi * camera.scale)
+    # Levelled: the canvas's down is the world's, whatever the reference's tilt.
+    np.testing.assert_allclose(camera.R[1] @ to_reference, [0.0, 1.0, 0.0], atol=1e-6)
+    assert set(np.unique(canvas.source)) - {-1} == set(range(8))
+    filled = np.argwhere(canvas.source >= 0)
+    rays = camera.pixels_to_rays(filled[:, ::-1].astype(np.float64)) @ to_reference
+    error = np.abs(canvas.image[filled[:, 0], filled[:, 1]] - world_colour(rays))
+    assert np.median(error) < 0.003 and np.quantile(error, 0.99) < 0.01
+    # The seam is closed: both edge columns are filled where the views reach.
+    middle = slice(camera.height // 3, 2 * camera.height // 3)
+    assert (canvas.source[middle, 0] >= 0).all() and (canvas.source[middle, -1] >= 0).all()
+    # The reference's pixels are its own rays: its footprint is its, around the ray of its centre.
+    centre = camera.rays_to_pixels(np.array([[0.0, 0.0, 1.0]]))[0]
+    assert canvas.source[int(round(centre[1])), int(round(centre[0]))] == 0
+
+
+def test_auto_keeps_perspective_where_the_views_fit_and_picks_the_canvas_by_latitude():
+    narrow = Scene([photographed(yaw_pitch(0.0)), photographed(yaw_pitch(25.0))])
+    assert choose_projection(narrow, 0, 3.0) == "perspective"
+    assert choose_projection(ring()[0], 0, 3.0) == "cylindrical"
+    steep = Scene([photographed(yaw_pitch(yaw, pitch)) for yaw in (0, 60, 120, 180, 240, 300) for pitch in (0, 55)])
+    assert choose_projection(steep, 0, 3.0) == "spherical"
+
+
+def test_a_spherical_stitch_exports_its_camera_and_refuses_colmap(tmp_path):
+    photo = data.astronaut()
+    result = pis3r.stitch([photo[:400, :400].copy(), photo[50:450, 60:460].copy()], backend="classical",
+                          refine="none", projection="spherical", quiet=True)
+    assert isinstance(result.camera, PanoramaCamera) and result.report["canvas"]["projection"] == "spherical"
+    exported = result.camera_json()
+    assert exported["model"] == "equirectangular" and exported["pixels_per_radian"] == pytest.approx(
+        result.scene.views[0].camera.K[0, 0])
+    # The reference's pixel (0, 0) lands where camera.json's model says.
+    ref = result.scene.views[0].camera
+    ray = np.linalg.inv(ref.K) @ [0.0, 0.0, 1.0] @ ref.R
+    np.testing.assert_allclose(result.camera.rays_to_pixels(ray[None])[0], result.ref_offset, atol=0.5)
+    with pytest.raises(InputError, match="COLMAP's text model holds pinhole cameras, and this canvas is "
+                                         "equirectangular: stitch with --projection perspective"):
+        result.save(tmp_path / "out", colmap=tmp_path / "colmap")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "colmap").exists()
+    assert {p.name for p in result.save(tmp_path / "out")} >= {"stitched.png", "camera.json"}
