@@ -125,12 +125,15 @@ def _read_within_limit(source: io.ImageLike, name: str) -> tuple[io.Photo, str]:
 
 def reference_first(count: int, ref: int | str) -> list[int]:
     """Input indices in the order the backend sees them: the reference first (it defines the
-    world frame); ``ref="all"`` keeps input 0 first."""
+    world frame), then the others nearest to it in input order first (ties: the earlier), since
+    sets are mostly shot in order and the reference's first partner is the one the held-back
+    band and the first focal come from (in a turn, input 0 may face away from a middle
+    reference); ``ref="all"`` keeps input 0 first."""
     if ref == "all":
         return list(range(count))
     if ref >= count:
         raise InputError(f"--ref must be an image index 0..{count - 1} or 'all', got {ref!r}")
-    return [ref] + [i for i in range(count) if i != ref]
+    return [ref] + sorted((i for i in range(count) if i != ref), key=lambda i: abs(i - ref))
 
 
 def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTimer,

@@ -87,3 +87,14 @@ def test_bad_reference_index(small_pair):
 
     with pytest.raises(InputError):
         pis3r.stitch(list(small_pair), ref=5)
+
+
+def test_the_reference_s_partners_come_nearest_in_input_order_first():
+    """A turn's middle photo as the reference meets its neighbours first, not input 0 from the
+    far side of the turn (the band test and the first focal come from its first partner)."""
+    from pis3r.api import reference_first
+
+    assert reference_first(5, 0) == [0, 1, 2, 3, 4]
+    assert reference_first(6, 3) == [3, 2, 4, 1, 5, 0]
+    assert reference_first(3, 1) == [1, 0, 2]
+    assert reference_first(3, "all") == [0, 1, 2]

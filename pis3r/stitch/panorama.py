@@ -2,8 +2,9 @@
 
 The perspective canvas (:mod:`pis3r.stitch.render`) holds what the reference camera could see
 on a larger image, which ends at about 120 deg. A panorama holds every direction: each view's
-cut mesh is placed in the reference camera's frame exactly as there (through its depth, or for
-a rotation through depth 1: rays at infinity), then every vertex goes to the canvas pixel of its
+cut mesh is placed in the reference camera's frame through its depth (a rotation's at depth 1:
+rays at infinity; a view the perspective canvas places by local homographies too, since those
+map onto the reference's image plane, which a turn leaves behind), then every vertex goes to the canvas pixel of its
 ray from the reference camera's centre (:class:`pis3r.projection.PanoramaCamera`), with its
 distance from that centre for the z-buffer, and colours are sampled bicubically from the
 full-resolution photos at the sub-pixel position the rasteriser interpolates.
@@ -23,6 +24,7 @@ full-resolution photos at the sub-pixel position the rasteriser interpolates.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -53,6 +55,9 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     """Render every view's surface of ``scene`` onto a ``model`` (``cylindrical`` or
     ``equirectangular``) canvas around camera ``ref_index`` (module docstring), with the
     reference's rays sampled from its photo. ``max_pixels`` caps the canvas's size."""
+    # Local homographies warp a view onto the reference's image plane, which a turn leaves
+    # behind: on a panorama every view is placed by its camera and depth (a rotation's at 1).
+    scene = replace(scene, views=tuple(replace(view, warp=None) for view in scene.views))
     ref_view = scene.views[ref_index]
     ref = ref_view.camera
     others = [index for index in range(len(scene.views)) if index != ref_index]
@@ -60,7 +65,8 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     to_canvas = world_to_canvas @ ref.R.T  # from the reference camera's frame
     with ThreadPoolExecutor(2) as pool:
         meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
-        rays = dict(pool.map(lambda placed: (placed[0], _canvas_frame_rays(scene, ref.K, to_canvas, placed)), meshes))
+    # Each mesh's points in the canvas frame: their length is the distance from its centre.
+    rays = {index: (points @ to_canvas.T).astype(np.float64) for index, _, points, _ in meshes}
     border = _border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
     used = [rays[index][grid_vertices(mesh.keep)] for index, mesh, _, _ in meshes]
     camera = _panorama_camera(model, world_to_canvas, -ref.R.T @ ref.t, float(ref.K[0, 0]), [border, *used],
@@ -111,18 +117,6 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     return Canvas(image=image, depth=Deferred(depth_with_reference), source=source, camera=camera,
                   ref_offset=(int(round(corner[0])), int(round(corner[1]))), dropped_points=beyond,
                   surfaces=counts, exposures=dict(zip(indices, exposures)))
-
-
-def _canvas_frame_rays(scene: Scene, K_ref: np.ndarray, to_canvas: np.ndarray, placed) -> np.ndarray:
-    """``(rows, cols, 3)``: a placed mesh's points (:func:`pis3r.stitch.render._mesh_in_reference`)
-    in the canvas frame, their length the distance from the reference camera's centre (a view
-    placed by local homographies onto the reference: the rays of the reference pixels it lands
-    on, at unit depth)."""
-    index, mesh, points, _ = placed
-    if points is None:
-        xy = scene.views[index].warp.apply(mesh.pixels).reshape(mesh.points.shape[:2] + (2,))
-        points = np.concatenate([(xy - K_ref[:2, 2]) / np.diag(K_ref)[:2], np.ones(xy.shape[:2] + (1,))], axis=-1)
-    return (points @ to_canvas.T).astype(np.float64)
 
 
 def _border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
