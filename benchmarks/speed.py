@@ -117,10 +117,11 @@ def growth(per_unit: dict[float, float | None], base: float) -> float | None:
     return per_unit[top] / per_unit[base]
 
 
-def bar_lines(values: dict[str, float | None]) -> list[str]:
-    """One line per bar of :data:`BARS`: PASS / FAIL / n/a, the measured value and the bound."""
+def bar_lines(values: dict[str, float | None], bars: tuple = BARS) -> list[str]:
+    """One line per bar of ``bars`` (``(what, key, bound)``; :data:`BARS` by default): PASS / FAIL /
+    n/a, the measured value and the bound."""
     lines = []
-    for what, key, limit in BARS:
+    for what, key, limit in bars:
         value = values.get(key)
         verdict = "n/a " if value is None else ("PASS" if value <= limit else "FAIL")
         shown = "not measured" if value is None else f"{value:.2f}"

@@ -93,6 +93,23 @@ def test_a_job_end_to_end_with_a_path_like_name(small_pair):
     assert not root.exists()  # every job's files are deleted at shutdown
 
 
+def test_a_panorama_job_offers_its_files_but_no_colmap_model(small_pair):
+    from pis3r.web.work import DOWNLOADS
+
+    with TestClient(create_app(LIMITS)) as client:
+        files = [(f"{i}.png", png(a), "image/png") for i, a in enumerate(small_pair)]
+        response = post(client, files, backend="classical", projection="cylindrical")
+        assert response.status_code == 202, response.text
+        job = wait(client, response.json()["id"])
+        assert job["status"] == "done", job
+        result = job["result"]
+        assert result["projection"] == "cylindrical"
+        assert set(result["files"]) == set(DOWNLOADS) - {"colmap.zip"}
+        assert client.get(result["files"]["camera.json"]).json()["model"] == "cylindrical"
+        assert client.get(result["files"]["overlay.png"]).content.startswith(b"\x89PNG")
+        assert client.get(f"/api/jobs/{job['id']}/files/colmap.zip").status_code == 404
+
+
 def test_queue_is_bounded_and_expired_jobs_are_deleted(tmp_path):
     release = threading.Event()
     jobs = JobQueue(lambda job: release.wait(10) and {}, workers=1, max_queued=1, ttl_s=0.0)

@@ -72,7 +72,7 @@ def test_upload_stitch_show_download(server, browser, small_pair, tmp_path):
 
     browser.get(server + "/")
     # The form's choices and defaults are the server's StitchOptions, loaded by the page.
-    for name in ("backend", "matcher", "blend"):
+    for name in ("backend", "matcher", "projection", "blend"):
         WebDriverWait(browser, 30).until(
             lambda d: len(d.find_elements(By.CSS_SELECTOR, f"#{name} option")) == len(StitchOptions.choices(name)))
         offered = [o.get_attribute("value") for o in browser.find_elements(By.CSS_SELECTOR, f"#{name} option")]

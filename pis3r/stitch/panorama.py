@@ -67,7 +67,7 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
         meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
     # Each mesh's points in the canvas frame: their length is the distance from its centre.
     rays = {index: (points @ to_canvas.T).astype(np.float64) for index, _, points, _ in meshes}
-    border = _border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
+    border = border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
     used = [rays[index][grid_vertices(mesh.keep)] for index, mesh, _, _ in meshes]
     camera = _panorama_camera(model, world_to_canvas, -ref.R.T @ ref.t, float(ref.K[0, 0]), [border, *used],
                               max_pixels)
@@ -119,7 +119,7 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
                   surfaces=counts, exposures=dict(zip(indices, exposures)))
 
 
-def _border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
+def border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
     """``(4 BORDER_SAMPLES, 3)`` rays of pixels along a camera's border (its frame), the first
     that of pixel ``(0, 0)``."""
     xs, ys = np.linspace(0, width - 1, BORDER_SAMPLES), np.linspace(0, height - 1, BORDER_SAMPLES)
@@ -237,7 +237,7 @@ def choose_projection(scene: Scene, ref_index: int, max_canvas_scale: float) -> 
     of the level horizon, else ``spherical``."""
     ref = scene.views[ref_index].camera
     rays = np.concatenate([
-        _border_rays(view.camera.K, view.camera.width, view.camera.height) @ (ref.R @ view.camera.R.T).T
+        border_rays(view.camera.K, view.camera.width, view.camera.height) @ (ref.R @ view.camera.R.T).T
         for view in scene.views])
     in_front = rays[:, 2] > 1e-6 * np.linalg.norm(rays, axis=1)
     if in_front.all():

@@ -2,7 +2,7 @@
 
 ``GET /api/options`` lists the form's options with their choices and defaults (from
 :class:`pis3r.StitchOptions`), ``POST /api/jobs`` (multipart ``files`` + ``ref``,
-``backend``, ``matcher``, ``blend``) queues a stitch,
+``backend``, ``matcher``, ``projection``, ``blend``) queues a stitch,
 ``GET /api/jobs/{id}`` reports its progress and result, ``GET /api/jobs/{id}/files/{name}``
 serves its outputs. Errors are JSON ``{"detail": "one line"}`` with 400 (bad input),
 413 (over a limit), 404 (unknown job or file) or 503 (queue full).
@@ -39,7 +39,7 @@ class WebLimits:
 
 
 # The StitchOptions fields the page offers besides the reference.
-FORM_OPTIONS = ("backend", "matcher", "blend")
+FORM_OPTIONS = ("backend", "matcher", "projection", "blend")
 
 
 def _form_option(name: str):
@@ -70,7 +70,7 @@ def job_status(job: Job, jobs: JobQueue) -> dict:
         "elapsed_s": round(((job.finished or now) - job.started), 1) if job.started else 0.0,
     }
     if job.status == "done":
-        files = {name: f"/api/jobs/{job.id}/files/{name}" for name in DOWNLOADS}
+        files = {name: f"/api/jobs/{job.id}/files/{name}" for name in job.result.get("downloads", DOWNLOADS)}
         status["result"] = {**job.result, "files": files}
     return status
 
@@ -117,6 +117,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
         ref: int = Form(0, description="Index of the reference photo (its camera is the output camera)"),
         backend: str = _form_option("backend"),
         matcher: str = _form_option("matcher"),
+        projection: str = _form_option("projection"),
         blend: str = _form_option("blend"),
     ) -> dict:
         if len(files) < 2:
@@ -125,7 +126,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
             raise UploadTooLargeError(f"at most {limits.max_files} photos per job, got {len(files)}")
         if not 0 <= ref < len(files):
             raise InputError(f"reference must be a photo index 0..{len(files) - 1}, got {ref}")
-        options = StitchOptions(ref=ref, backend=backend, matcher=matcher, blend=blend)
+        options = StitchOptions(ref=ref, backend=backend, matcher=matcher, projection=projection, blend=blend)
         names = [safe_name(upload.filename, index) for index, upload in enumerate(files)]
         contents = []
         for name, upload in zip(names, files):
@@ -154,7 +155,7 @@ def create_app(limits: WebLimits = WebLimits()) -> FastAPI:
     @app.get("/api/jobs/{job_id}/files/{name}", summary="Download one output of a finished job")
     def download(job_id: str, name: str) -> FileResponse:
         job = find(job_id)
-        if name not in DOWNLOADS or job.status != "done":
+        if job.status != "done" or name not in job.result.get("downloads", DOWNLOADS):
             raise HTTPException(404, f"no file {name!r} for this job")
         return FileResponse(job.directory / "out" / name, filename=name)
 
