@@ -25,13 +25,14 @@ def world_colour(rays: np.ndarray) -> np.ndarray:
                      0.5 + 0.4 * np.sin(4 * lat)], axis=1).astype(np.float32)
 
 
-def photographed(R: np.ndarray, frame: np.ndarray = np.eye(3)) -> View:
-    """The view of the synthetic world from the origin by a camera of world-to-camera ``R``,
-    as a rotation's view (depth 1) in a scene whose frame is ``frame`` times the world's."""
+def photographed(R: np.ndarray, frame: np.ndarray = np.eye(3), gain: float = 1.0) -> View:
+    """The view of the synthetic world from the origin by a camera of world-to-camera ``R`` and
+    exposure ``gain``, as a rotation's view (depth 1) in a scene whose frame is ``frame`` times
+    the world's."""
     K = intrinsics(F, W, H)
     ys, xs = np.mgrid[0:H, 0:W]
     rays = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], 1) @ np.linalg.inv(K).T @ R
-    image = world_colour(rays).reshape(H, W, 3)
+    image = gain * world_colour(rays).reshape(H, W, 3)
     return View(image, Camera(K, R @ frame.T, np.zeros(3), W, H), np.ones((H, W), np.float32),
                 np.ones((H, W), np.float32))
 
@@ -41,13 +42,14 @@ def yaw_pitch(yaw_deg: float, pitch_deg: float = 0.0) -> np.ndarray:
     return Rotation.from_euler("xy", [pitch_deg, yaw_deg], degrees=True).as_matrix().T
 
 
-def ring(count: int = 8, pitch_deg: float = 0.0, start_deg: float = 0.0) -> Scene:
-    """``count`` views turning a full circle; the reference (the first) tilted by ``pitch_deg``.
-    World frame: the reference camera's (the convention of every Scene)."""
+def ring(count: int = 8, pitch_deg: float = 0.0, start_deg: float = 0.0, gains=None) -> Scene:
+    """``count`` views turning a full circle, each with its exposure ``gains`` (default 1); the
+    reference (the first) tilted by ``pitch_deg``. World frame: the reference camera's (the
+    convention of every Scene)."""
     rotations = [yaw_pitch(start_deg + 360.0 * k / count) for k in range(count)]
     rotations[0] = yaw_pitch(start_deg, pitch_deg)
-    # The scene's world is the reference camera's frame.
-    return Scene([photographed(R, rotations[0]) for R in rotations]), rotations[0]
+    gains = gains or [1.0] * count
+    return Scene([photographed(R, rotations[0], gain) for R, gain in zip(rotations, gains)]), rotations[0]
 
 
 @pytest.mark.parametrize("model", ["equirectangular", "cylindrical"])
@@ -116,6 +118,23 @@ def test_a_full_turn_shows_the_world_it_was_photographed_from(model):
     # The reference's pixels are its own rays: its footprint is its, around the ray of its centre.
     centre = camera.rays_to_pixels(np.array([[0.0, 0.0, 1.0]]))[0]
     assert canvas.source[int(round(centre[1])), int(round(centre[0]))] == 0
+
+
+def test_a_turn_s_exposures_are_evened_out_over_all_overlaps():
+    """Eight views of one world at exposures 0.8-1.1 times the reference's: the gains solved over
+    every overlap bring each back to the reference's, though most never overlap it."""
+    exposures = [1.0, 1.1, 0.8, 1.05, 0.85, 1.1, 0.9, 0.95]
+    scene, to_reference = ring(gains=exposures)
+
+    def colour_error(canvas):
+        filled = np.argwhere(canvas.source >= 0)
+        rays = canvas.camera.pixels_to_rays(filled[:, ::-1].astype(np.float64)) @ to_reference
+        return np.median(np.abs(canvas.image[filled[:, 0], filled[:, 1]] - world_colour(rays)))
+
+    matched = render_to_panorama(scene, 0, "equirectangular")
+    gains = np.array([matched.exposures[view].gain for view in range(1, 8)])
+    np.testing.assert_allclose(gains, 1.0 / np.array(exposures[1:])[:, None].repeat(3, axis=1), rtol=0.03)
+    assert colour_error(matched) < 0.01 and colour_error(render_to_panorama(scene, 0, match_exposure=False)) > 0.02
 
 
 def test_auto_keeps_perspective_where_the_views_fit_and_picks_the_canvas_by_latitude():

@@ -17,8 +17,9 @@ full-resolution photos at the sub-pixel position the rasteriser interpolates.
   by the canvas: no triangle is stretched across it.
 - The reference keeps its pixels' rays: where it sees, the canvas shows the reference sampled
   at the pixel of the canvas pixel's ray (bicubic, the projection's only resampling).
-- Exposure: each view's gain and falloff fitted where it lands inside the reference, as on the
-  perspective canvas; a view that does not overlap the reference keeps its colours.
+- Exposure: around a turn most views never meet the reference, so their gains are solved
+  together over every pair's overlap (:mod:`pis3r.stitch.gains`), measured on a copy of the
+  canvas of about ``GAIN_CANVAS_PIXELS`` where each view is drawn alone; the reference's stays 1.
 """
 
 from __future__ import annotations
@@ -34,10 +35,10 @@ from pis3r.projection import (CYLINDER_LATITUDE_LIMIT_DEG, CYLINDER_MAX_LATITUDE
                               canvas_rays, level_rotation)
 from pis3r.scene import Deferred, Scene
 from pis3r.stitch.canvas import Canvas
-from pis3r.stitch.exposure import NEUTRAL, squared_tangents
+from pis3r.stitch.exposure import NEUTRAL, Exposure
+from pis3r.stitch.gains import overlap_statistics, solve_gains
 from pis3r.stitch.raster import Triangles, rasterise
-from pis3r.stitch.render import (COLOUR_INTERPOLATION, GAIN_SAMPLES, MAX_STRETCH, _mesh_in_reference, _surfaces,
-                                 fit_exposures, sample_colours)
+from pis3r.stitch.render import COLOUR_INTERPOLATION, MAX_STRETCH, _mesh_in_reference, _surfaces, sample_colours
 
 # A panorama keeps the reference's resolution at its centre unless that makes more than this many
 # pixels: then it is rendered at the scale that fits (a full turn of 8 MP phone photos is about
@@ -45,6 +46,8 @@ from pis3r.stitch.render import (COLOUR_INTERPOLATION, GAIN_SAMPLES, MAX_STRETCH
 PANORAMA_MAX_PIXELS = 80_000_000
 # Longitudes are binned this finely to find the arc the views leave uncovered.
 ARC_BINS = 3600
+# Pixels of the canvas's copy on which the views' overlaps are measured for their gains.
+GAIN_CANVAS_PIXELS = 400_000
 # Points sampled along each side of the reference's border to find its footprint on the canvas.
 BORDER_SAMPLES = 64
 
@@ -87,15 +90,10 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     ref_colours = np.clip(cv2.remap(ref_view.image, map_xy, None, COLOUR_INTERPOLATION,
                                     borderMode=cv2.BORDER_REPLICATE), 0.0, 1.0)
     exposures = [NEUTRAL] * len(indices)
-    if match_exposure and inside.any():
-        # A regular grid of about GAIN_SAMPLES of the reference's pixels on the canvas.
-        stride = max(1, int((inside.sum() / GAIN_SAMPLES) ** 0.5))
-        grid = (slice(box[0].start, box[0].stop, stride), slice(box[1].start, box[1].stop, stride))
-        chosen = inside[::stride, ::stride].ravel()
-        exposures = fit_exposures(scene, raster.layer[grid].ravel()[chosen], raster.uv[grid].reshape(-1, 2)[chosen],
-                                  indices, ref_colours[::stride, ::stride].reshape(-1, 3)[chosen],
-                                  squared_tangents(ref_pixels[::stride, ::stride].reshape(-1, 2)[chosen], ref.K), ref)
-    # Beyond the reference a view's falloff is removed: its colours brought to the lens's centre.
+    if match_exposure:
+        gains = _joint_gains(scene, surfaces, camera, ref_index, to_canvas, border, raster_backend)
+        exposures = [Exposure(gains[view].astype(np.float32)) for view in indices]
+    # Gains alone: the squared tangents, which a falloff would need, are not read.
     image = sample_colours(scene, raster, indices, exposures,
                            lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32))
     source = np.asarray(indices + [-1], np.int16)[raster.layer]
@@ -105,8 +103,10 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     beyond = sum(int((~np.isfinite(first_copies[index][0][0]).all(axis=-1) & grid_vertices(mesh.keep)).sum())
                  for index, mesh, _, _ in meshes)
 
+    # The deferred depth keeps the z-buffer alone: the rest of the raster is freed on return.
+    depth = raster.z
+
     def depth_with_reference() -> np.ndarray:
-        depth = raster.z
         ref_depth = cv2.remap(np.where(ref_view.valid > 0, ref_view.depth, np.inf).astype(np.float32), map_xy, None,
                               cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.inf)
         ray_length = np.hypot(np.hypot((map_xy[..., 0] - ref.K[0, 2]) / ref.K[0, 0],
@@ -117,6 +117,32 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     return Canvas(image=image, depth=Deferred(depth_with_reference), source=source, camera=camera,
                   ref_offset=(int(round(corner[0])), int(round(corner[1]))), dropped_points=beyond,
                   surfaces=counts, exposures=dict(zip(indices, exposures)))
+
+
+def _joint_gains(scene: Scene, surfaces: list, camera: PanoramaCamera, ref_index: int, to_canvas: np.ndarray,
+                 border: np.ndarray, raster_backend: str) -> dict[int, np.ndarray]:
+    """View index to its ``(3,)`` gain (:mod:`pis3r.stitch.gains`), the overlaps measured on a copy
+    of the canvas of about ``GAIN_CANVAS_PIXELS``, every view drawn there alone."""
+    factor = min(1.0, (GAIN_CANVAS_PIXELS / (camera.width * camera.height)) ** 0.5)
+    small = replace(camera, scale=camera.scale * factor, width=max(1, round(camera.width * factor)),
+                    height=max(1, round(camera.height * factor)))
+    views = sorted({s.view for s in surfaces})
+    colours, valid = [], []
+    for view in views:
+        raster = rasterise([Triangles(s.xy * factor, s.z, s.uv, s.faces) for s in surfaces if s.view == view],
+                           small.width, small.height, raster_backend)
+        colours.append(cv2.remap(scene.views[view].image, raster.uv, None, cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REPLICATE))
+        valid.append(raster.layer >= 0)
+    ref = scene.views[ref_index].camera
+    box, pixels = _reference_footprint(small, to_canvas, ref.K, ref.width, ref.height, border)
+    inside = np.zeros((small.height, small.width), bool)
+    inside[box] = np.isfinite(pixels[..., 0])
+    reference = np.zeros((small.height, small.width, 3), np.float32)
+    reference[box] = cv2.remap(scene.views[ref_index].image, np.nan_to_num(pixels, nan=-1e4), None,
+                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    gains = solve_gains(*overlap_statistics([*colours, reference], [*valid, inside]), len(views))
+    return dict(zip(views, gains))
 
 
 def border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:

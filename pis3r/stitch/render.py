@@ -341,8 +341,11 @@ def render_to_canvas(
     image[window] = ref_view.image
     source[window] = ref_index
 
+    # The deferred depth keeps the z-buffer alone: the rest of the raster (the source pixels, 8
+    # bytes a canvas pixel) is freed when this returns.
+    depth = raster.z
+
     def depth_with_reference() -> np.ndarray:
-        depth = raster.z
         depth[window] = np.where(ref_view.valid, ref_view.depth, np.inf)
         return depth
 
