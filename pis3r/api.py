@@ -39,10 +39,12 @@ from pis3r.stitch.choose import ModelChoice, choose_model
 from pis3r.stitch.holes import fill_holes
 from pis3r.stitch.mask import MaskValue, stitch_mask
 from pis3r.stitch.canvas import Canvas
+from pis3r.stitch.crop import cropped_camera, largest_rectangle
 from pis3r.stitch.panorama import choose_projection, render_to_panorama
 from pis3r.stitch.render import render_to_canvas
 from pis3r.learned_features import LEARNED_NETWORKS
-from pis3r.projection import CAMERA_MODELS
+from pis3r.camera import Camera
+from pis3r.projection import CAMERA_MODELS, PanoramaCamera
 from pis3r.warmup import CLASSICAL_MODULES, single_threaded_blas, warm_up_in_background
 
 # Inputs above this are downscaled before anything else (memory and time grow
@@ -88,7 +90,7 @@ def stitch(
             refs = scene.indices if options.ref == "all" else (order[0],)
             composites = [composite(scene, index, options, timer) for index in refs]
     results = [
-        StitchResult(c.image, c.mask, c.canvas.camera, c.canvas.ref_offset, index, scene,
+        StitchResult(c.image, c.mask, c.camera, c.ref_offset, index, scene,
                      build_report(scene, backend, choice, parallax, c, log.lines, index, options))
         for index, c in zip(refs, composites)
     ]
@@ -174,14 +176,17 @@ class Composite:
     """One reference's canvas after every stage: geometry, final image, mask, stage seconds,
     and the refinement that ran (``auto`` resolved). Hole filling and blending work on the
     rendered canvas's pixels in place: ``canvas.image`` is the blended image before refinement.
-    ``projection``: the canvas's (``auto`` resolved)."""
+    ``projection``: the canvas's (``auto`` resolved); ``camera`` and ``ref_offset``: those of
+    ``image`` (the canvas's, moved by ``--crop``)."""
 
     canvas: Canvas
     image: np.ndarray
     mask: np.ndarray
     seconds: dict[str, float]
     refine: str
-    projection: str = "perspective"
+    projection: str
+    camera: Camera | PanoramaCamera
+    ref_offset: tuple[int, int]
 
 
 def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: StageTimer) -> Composite:
@@ -218,7 +223,14 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
         with sub.stage("refine"):
             image = refine_canvas(image, mask, options.refine_region, options.refine_steps,
                                   resolve_device(options.device), options.refine_weights)
-    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine, projection)
+    camera, ref_offset = canvas.camera, canvas.ref_offset
+    if options.crop:
+        rows, cols = largest_rectangle(mask != MaskValue.BACKGROUND)
+        if rows.stop > rows.start and cols.stop > cols.start:
+            image, mask = image[rows, cols], mask[rows, cols]
+            camera = cropped_camera(camera, rows, cols)
+            ref_offset = (ref_offset[0] - cols.start, ref_offset[1] - rows.start)
+    return Composite(canvas, image, mask, {**timer.seconds, **sub.seconds}, refine, projection, camera, ref_offset)
 
 
 def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: ParallaxEstimate, result: Composite,
@@ -237,8 +249,9 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "matches": scene.info.get("num_matches"),
         "inliers": scene.info.get("num_inliers"),
         "seconds": {name: round(value, 4) for name, value in result.seconds.items()},
-        "canvas": {"width": canvas.camera.width, "height": canvas.camera.height, "projection": result.projection},
-        "ref_offset": list(canvas.ref_offset),
+        "canvas": {"width": result.camera.width, "height": result.camera.height, "projection": result.projection,
+                   "cropped": result.camera is not canvas.camera},
+        "ref_offset": list(result.ref_offset),
         "fractions": {
             "projected": round(float((mask == MaskValue.RENDERED).sum()) / total, 5),
             "inpainted": round(float((mask == MaskValue.INPAINTED).sum()) / total, 5),

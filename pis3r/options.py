@@ -98,6 +98,9 @@ class StitchOptions:
                          choices=BLEND_METHODS)
     blend_into_reference: bool = _option(
         False, "Let the blend enter the reference (by default its pixels stay verbatim).", kind=bool)
+    crop: bool = _option(
+        False, "Crop the result to the largest rectangle with no empty pixel in it (the canvas camera moves "
+        "with it).", kind=bool)
     refine: str = _option(DEFAULT_REFINE, "Diffusion refinement of the canvas: auto = rddm when its weights "
                           "are installed.", choices=REFINE_METHODS)
     refine_region: str = _option(

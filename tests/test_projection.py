@@ -162,3 +162,40 @@ def test_a_spherical_stitch_exports_its_camera_and_refuses_colmap(tmp_path):
         result.save(tmp_path / "out", colmap=tmp_path / "colmap")
     assert not (tmp_path / "out").exists() and not (tmp_path / "colmap").exists()
     assert {p.name for p in result.save(tmp_path / "out")} >= {"stitched.png", "camera.json"}
+
+
+def test_the_largest_rectangle_is_the_largest():
+    from pis3r.stitch.crop import _largest_in, largest_rectangle
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        filled = rng.random((6, 8)) < 0.75
+        top, left, bottom, right = _largest_in(filled)
+        best = max([(b - t) * (r - l) for t in range(6) for b in range(t + 1, 7) for l in range(8)
+                    for r in range(l + 1, 9) if filled[t:b, l:r].all()] or [0])
+        assert (bottom - top) * (right - left) == best and filled[top:bottom, left:right].all()
+    canvas = np.ones((3000, 9000), bool)
+    canvas[:400] = False
+    canvas[:, 8000:] = False
+    rows, cols = largest_rectangle(canvas)
+    assert canvas[rows, cols].all() and (rows.stop - rows.start) * (cols.stop - cols.start) > 0.995 * 2600 * 8000
+
+
+@pytest.mark.parametrize("projection", ["perspective", "cylindrical"])
+def test_a_cropped_stitch_has_no_empty_pixel_and_its_camera_moved_with_it(projection):
+    photo = data.astronaut()
+    pair = [photo[:400, :400].copy(), photo[50:450, 60:460].copy()]
+    whole = pis3r.stitch(pair, backend="classical", refine="none", projection=projection, quiet=True)
+    cropped = pis3r.stitch(pair, backend="classical", refine="none", projection=projection, crop=True, quiet=True)
+    assert (whole.mask == 0).any() and (cropped.mask > 0).all() and cropped.report["canvas"]["cropped"]
+    assert cropped.image.shape[:2] == (cropped.camera.height, cropped.camera.width)
+    # The reference's pixel (0, 0) is where the cropped camera says, and the crop's pixels are the canvas's.
+    ref = cropped.scene.views[0].camera
+    ray = np.linalg.inv(ref.K) @ [0.0, 0.0, 1.0] @ ref.R
+    shift = np.subtract(whole.ref_offset, cropped.ref_offset)
+    if projection == "perspective":
+        np.testing.assert_allclose(cropped.camera.K[:2, 2], ref.K[:2, 2] + cropped.ref_offset)
+    else:
+        np.testing.assert_allclose(cropped.camera.rays_to_pixels(ray[None])[0], cropped.ref_offset, atol=0.5)
+    y, x = cropped.image.shape[0] // 2, cropped.image.shape[1] // 2
+    np.testing.assert_array_equal(cropped.image[y, x], whole.image[y + shift[1], x + shift[0]])
