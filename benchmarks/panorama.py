@@ -15,7 +15,16 @@ Columns: seconds, peak GB, photos placed of the set (OpenCV: its ``component()``
 photos its subsetter keeps; pis3r: the views its report lists), the result's size, and NIQE and
 PIQE (lower is better; the paper's protocol where there is no ground truth) on the largest
 axis-aligned rectangle the result's filled pixels hold, resized to ``SCORE_HEIGHT`` rows, the
-same for every method. Then issue 41's bar lines these numbers decide.
+same for every method.
+
+Then the crop protocol extended to sets: every photo copied at most ``CROP_SET_SIDE`` long (PNG,
+so no method reads an EXIF focal), the middle one replaced by its centre crop (``--crop`` of each
+side), all of them stitched by each method (pis3r with ``--projection perspective``, the
+protocol's ground truth being the middle photo itself), and the result scored on the crop's
+border against the photo: pis3r at its ``ref_offset``, the peers registered to the crop
+(:func:`pis3r.eval.scoring.score_registered`), as ``benchmarks/eval_crop.py`` does for pairs.
+PSNR, SSIM and LPIPS on the filled part of the border, and the part filled. Then issue 41's bar
+lines these numbers decide.
 """
 
 from __future__ import annotations
@@ -38,11 +47,14 @@ METHODS = ("opencv", "stitching", "pis3r")
 # Results are scored at this height (the largest filled rectangle, resized): NIQE and PIQE
 # depend on the scale, and tens of megapixels would take minutes each.
 SCORE_HEIGHT = 1000
+# The crop protocol's copies of the photos are at most this long (each method gets the same).
+CROP_SET_SIDE = 1600
 # (what, key, upper bound) of issue 41's bar that this measures.
 BARS = (
     ("pis3r seconds / OpenCV's", "time_ratio", 5.0),
     ("pis3r peak GB", "peak_gb", 6.0),
     ("pis3r NIQE - OpenCV's", "niqe_gap", 0.0),
+    ("best peer's crop-protocol PSNR - pis3r's (dB)", "psnr_gap", -1.0),
 )
 
 _OPENCV = r"""
@@ -179,12 +191,67 @@ def bar_values(rows: list[dict]) -> dict:
     return values
 
 
+def crop_protocol(folder: Path, methods: list[str], tmp: Path, crop: float, run_once) -> list[dict]:
+    """One row per method: the crop protocol on the set in ``folder`` (module docstring)."""
+    from pis3r.eval.cases import crop_case
+    from pis3r.eval.scoring import score_exact, score_registered
+    from pis3r.io import read_image, write_png
+
+    photos = photo_files(folder)
+    middle = len(photos) // 2
+    pixels = []
+    for path in photos:
+        image = read_image(path).pixels
+        scale = min(1.0, CROP_SET_SIDE / max(image.shape[:2]))
+        pixels.append(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image)
+    case = crop_case(pixels[middle], pixels[(middle + 1) % len(pixels)], crop, folder.name, "panorama")
+    inputs = []
+    for index, image in enumerate(pixels):
+        inputs.append(tmp / f"{index:02d}.png")
+        write_png(inputs[-1], case.reference if index == middle else image)
+    rows = []
+    for method in methods:
+        out = tmp / ("crop-pis3r" if method == "pis3r" else f"crop-{method}.png")
+        run = run_once(method_command(method, inputs, out, "perspective"))
+        row = {"set": folder.name, "method": method, "ok": run["rc"] == 0, "seconds": run["seconds"]}
+        if row["ok"]:
+            result = read_result(method, out, len(inputs))
+            if method == "pis3r":
+                offset = json.loads((out / "camera.json").read_text())["ref_offset"]
+                scores = score_exact(result["image"], tuple(offset), case, result["filled"])
+            else:
+                scores = score_registered(result["image"], case, result["filled"])
+            row.update(psnr=scores["bar_psnr"], ssim=scores["bar_ssim"], lpips=scores["bar_lpips"],
+                       coverage=scores["coverage"])
+        rows.append(row)
+    return rows
+
+
+def format_crop_row(row: dict) -> str:
+    if not row["ok"] or "psnr" not in row:
+        return f"{row['set']:34s} {row['method']:10s} failed"
+    return (f"{row['set']:34s} {row['method']:10s} {row['psnr']:7.2f} {row['ssim']:6.3f} {row['lpips']:6.3f}"
+            f" {row['coverage']:9.3f} {row['seconds']:8.1f}")
+
+
+def psnr_gap(rows: list[dict]) -> float | None:
+    """The worst set's best peer PSNR minus pis3r's (``None`` where pis3r or every peer failed)."""
+    gaps = []
+    for name in {row["set"] for row in rows}:
+        scored = {row["method"]: row["psnr"] for row in rows if row["set"] == name and "psnr" in row}
+        peers = [value for method, value in scored.items() if method != "pis3r" and np.isfinite(value)]
+        if "pis3r" in scored and peers:
+            gaps.append(max(peers) - scored["pis3r"])
+    return max(gaps) if gaps else None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--only", nargs="*", default=None, metavar="SET")
     parser.add_argument("--projection", default="auto")
     parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--crop", type=float, default=0.6, help="the crop protocol's share of each side kept")
     args = parser.parse_args()
     if not args.data.is_dir():
         print(f"no data at {args.data} (../shared/data/panorama next to the checkout); nothing measured",
@@ -204,8 +271,16 @@ def main() -> None:
                 row = {**measure(method, photos, Path(tmp_name), args.projection, run_once), "set": folder.name}
                 rows.append(row)
                 print(format_row(folder.name, row, len(photos)), flush=True)
+    print(f"\ncrop protocol (middle photo cropped to {args.crop:g} of each side, scored on its border)")
+    print(f"{'set':34s} {'method':10s} {'PSNR':>7s} {'SSIM':>6s} {'LPIPS':>6s} {'coverage':>9s} {'seconds':>8s}")
+    crop_rows = []
+    for folder in sets:
+        with tempfile.TemporaryDirectory() as tmp_name:
+            for row in crop_protocol(folder, args.methods.split(","), Path(tmp_name), args.crop, run_once):
+                crop_rows.append(row)
+                print(format_crop_row(row), flush=True)
     print()
-    for line in speed.bar_lines(bar_values(rows), BARS):
+    for line in speed.bar_lines({**bar_values(rows), "psnr_gap": psnr_gap(crop_rows)}, BARS):
         print(line)
 
 

@@ -46,3 +46,19 @@ def test_the_bar_values_are_the_worst_set_s():
     rows[2]["ok"] = False
     values = panorama.bar_values(rows)
     assert values["time_ratio"] == 3.0 and values["peak_gb"] == 7.0
+
+
+def test_the_crop_protocol_gap_is_the_worst_set_s_best_peer_minus_pis3r():
+    rows = [
+        {"set": "a", "method": "opencv", "ok": True, "psnr": 20.0},
+        {"set": "a", "method": "stitching", "ok": True, "psnr": 21.0},
+        {"set": "a", "method": "pis3r", "ok": True, "psnr": 23.0},
+        {"set": "b", "method": "opencv", "ok": True, "psnr": float("nan")},
+        {"set": "b", "method": "pis3r", "ok": True, "psnr": 18.0},
+        {"set": "c", "method": "opencv", "ok": True, "psnr": 19.5},
+        {"set": "c", "method": "pis3r", "ok": True, "psnr": 19.0},
+    ]
+    assert panorama.psnr_gap(rows) == 0.5
+    assert panorama.psnr_gap(rows[:3]) == -2.0
+    assert panorama.psnr_gap([{"set": "a", "method": "pis3r", "ok": False}]) is None
+    assert "failed" in panorama.format_crop_row({"set": "a", "method": "opencv", "ok": False, "seconds": 1.0})
