@@ -9,8 +9,11 @@ their gains come from their neighbours. Brown and Lowe's gain compensation (IJCV
 
 where ``N_ij`` is their overlap's pixel count and ``I_ij`` view ``i``'s mean colour there; the
 second term keeps the gains near 1 where the overlaps leave them free. The quadratic's minimum is
-one linear solve. The reference's gain is then divided out of all of them, so its own colours
-stay as they are.
+one linear solve. The gains are then divided by their geometric mean: the turn comes out at its
+photos' average exposure, the reference's gain included. Pinned to the reference instead, the
+cathedral's 16 other photos were brought to its exposure, 0.6-0.9 x theirs (it faces the lit
+apse): the whole turn darker, NIQE 3.62 against 3.27 at the average (and 3.33 with no gains;
+OpenCV's Stitcher 3.47). A panorama keeps the reference's rays, not its colours.
 """
 
 from __future__ import annotations
@@ -45,10 +48,10 @@ def overlap_statistics(colours: list[np.ndarray], valid: list[np.ndarray]) -> tu
     return counts, means
 
 
-def solve_gains(counts: np.ndarray, means: np.ndarray, reference: int) -> np.ndarray:
+def solve_gains(counts: np.ndarray, means: np.ndarray) -> np.ndarray:
     """``(n, 3)`` gains per view and channel minimising the module's cost for the overlaps
-    ``counts`` and ``means`` (:func:`overlap_statistics`), the ``reference``'s exactly 1, each
-    within :data:`pis3r.stitch.exposure.GAIN_RANGE` of the reference's colours."""
+    ``counts`` and ``means`` (:func:`overlap_statistics`), their geometric mean 1, each within
+    :data:`pis3r.stitch.exposure.GAIN_RANGE`."""
     n = len(counts)
     alpha, beta = 1.0 / GAIN_NOISE**2, 1.0 / GAIN_SPREAD**2
     gains = np.ones((n, 3))
@@ -59,4 +62,4 @@ def solve_gains(counts: np.ndarray, means: np.ndarray, reference: int) -> np.nda
         A -= 2 * alpha * intensity * intensity.T * counts
         b = beta * (counts.sum(axis=1) + 1.0)
         gains[:, channel] = np.linalg.solve(A, b)
-    return np.clip(gains / gains[reference], *GAIN_RANGE)
+    return np.clip(gains / np.exp(np.log(gains).mean(axis=0)), *GAIN_RANGE)

@@ -17,9 +17,10 @@ full-resolution photos at the sub-pixel position the rasteriser interpolates.
   by the canvas: no triangle is stretched across it.
 - The reference keeps its pixels' rays: where it sees, the canvas shows the reference sampled
   at the pixel of the canvas pixel's ray (bicubic, the projection's only resampling).
-- Exposure: around a turn most views never meet the reference, so their gains are solved
-  together over every pair's overlap (:mod:`pis3r.stitch.gains`), measured on a copy of the
-  canvas of about ``GAIN_CANVAS_PIXELS`` where each view is drawn alone; the reference's stays 1.
+- Exposure: around a turn most views never meet the reference, so the gains of all of them,
+  the reference's included, are solved together over every pair's overlap and brought to the
+  photos' average exposure (:mod:`pis3r.stitch.gains`), measured on a copy of the canvas of about
+  ``GAIN_CANVAS_PIXELS`` where each view is drawn alone.
 """
 
 from __future__ import annotations
@@ -89,10 +90,12 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     map_xy = np.where(inside[..., None], ref_pixels, -1e4).astype(np.float32)
     ref_colours = np.clip(cv2.remap(ref_view.image, map_xy, None, COLOUR_INTERPOLATION,
                                     borderMode=cv2.BORDER_REPLICATE), 0.0, 1.0)
-    exposures = [NEUTRAL] * len(indices)
+    exposures, reference_exposure = [NEUTRAL] * len(indices), NEUTRAL
     if match_exposure:
         gains = _joint_gains(scene, surfaces, camera, ref_index, to_canvas, border, raster_backend)
         exposures = [Exposure(gains[view].astype(np.float32)) for view in indices]
+        reference_exposure = Exposure(gains[ref_index].astype(np.float32))
+        np.clip(reference_exposure.apply_gain(ref_colours), 0.0, 1.0, out=ref_colours)
     # Gains alone: the squared tangents, which a falloff would need, are not read.
     image = sample_colours(scene, raster, indices, exposures,
                            lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32))
@@ -116,13 +119,14 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
 
     return Canvas(image=image, depth=Deferred(depth_with_reference), source=source, camera=camera,
                   ref_offset=(int(round(corner[0])), int(round(corner[1]))), dropped_points=beyond,
-                  surfaces=counts, exposures=dict(zip(indices, exposures)))
+                  surfaces=counts, exposures={**dict(zip(indices, exposures)), ref_index: reference_exposure})
 
 
 def _joint_gains(scene: Scene, surfaces: list, camera: PanoramaCamera, ref_index: int, to_canvas: np.ndarray,
                  border: np.ndarray, raster_backend: str) -> dict[int, np.ndarray]:
-    """View index to its ``(3,)`` gain (:mod:`pis3r.stitch.gains`), the overlaps measured on a copy
-    of the canvas of about ``GAIN_CANVAS_PIXELS``, every view drawn there alone."""
+    """View index to its ``(3,)`` gain (:mod:`pis3r.stitch.gains`), the reference's included, the
+    overlaps measured on a copy of the canvas of about ``GAIN_CANVAS_PIXELS``, every view drawn
+    there alone."""
     factor = min(1.0, (GAIN_CANVAS_PIXELS / (camera.width * camera.height)) ** 0.5)
     small = replace(camera, scale=camera.scale * factor, width=max(1, round(camera.width * factor)),
                     height=max(1, round(camera.height * factor)))
@@ -141,8 +145,8 @@ def _joint_gains(scene: Scene, surfaces: list, camera: PanoramaCamera, ref_index
     reference = np.zeros((small.height, small.width, 3), np.float32)
     reference[box] = cv2.remap(scene.views[ref_index].image, np.nan_to_num(pixels, nan=-1e4), None,
                                cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    gains = solve_gains(*overlap_statistics([*colours, reference], [*valid, inside]), len(views))
-    return dict(zip(views, gains))
+    gains = solve_gains(*overlap_statistics([*colours, reference], [*valid, inside]))
+    return dict(zip([*views, ref_index], gains))
 
 
 def border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
