@@ -202,6 +202,11 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
             canvas = render_to_panorama(scene, position, CAMERA_MODELS[projection])
     if options.projection == "auto":
         sub.say(f"projection: {projection} (auto)")
+    if isinstance(canvas.camera, PanoramaCamera):
+        placed = 1 + sum(counts.rendered > 0 for counts in canvas.surfaces)
+        turn = "a full turn" if canvas.camera.full_turn else f"{np.degrees(canvas.camera.width / canvas.camera.scale):.0f} deg"
+        sub.say(f"{projection} canvas {canvas.camera.width}x{canvas.camera.height}: {turn} of longitude, "
+                f"{placed} of {len(scene.views)} photos on it")
     with sub.stage("fill holes"):
         # In place, like the blend: each stage owns the canvas's pixels in turn (tens of megapixels).
         filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius, in_place=True)

@@ -1,6 +1,7 @@
 """The command line end to end: real pairs, outputs and every kind of bad input."""
 
 import json
+import re
 import struct
 import subprocess
 import sys
@@ -280,6 +281,7 @@ def test_a_panorama_asked_for_a_colmap_model_is_one_line_and_writes_nothing(over
                "--colmap", tmp_path / "colmap")
     assert_clean_failure(proc, message="COLMAP's text model holds pinhole cameras, and this canvas is cylindrical")
     assert not (tmp_path / "out").exists() and not (tmp_path / "colmap").exists()
-    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--projection", "cylindrical", "--quiet")
+    proc = run("stitch", *overlapping_pair, "-o", tmp_path / "out", "--projection", "cylindrical")
     assert proc.returncode == 0
     assert json.loads((tmp_path / "out" / "camera.json").read_text())["model"] == "cylindrical"
+    assert re.search(r"\[pis3r\] cylindrical canvas \d+x\d+: \d+ deg of longitude, 2 of 2 photos on it", proc.stderr)
