@@ -53,6 +53,24 @@ def test_without_ground_truth_methods_get_no_reference_scores(tmp_path):
     assert "bar_psnr" not in row
 
 
+def test_a_panorama_projection_is_scored_without_ground_truth_only(tmp_path):
+    data = tiny_dataset(tmp_path / "tiny")
+    refused = CliRunner().invoke(main, ["eval", str(data), "-o", str(tmp_path / "report"), "--methods", "pis3r",
+                                        "--projection", "spherical", "--quiet"])
+    assert refused.exit_code != 0 and "--projection spherical needs --crop 0" in refused.output
+    assert not (tmp_path / "report").exists()
+    spec = discover_cases(data)[0]
+    row = evaluate_method(spec, "pis3r", EvalConfig(("pis3r",), crop=0.0, projection="cylindrical")).row
+    assert row["status"] == "ok" and row["niqe"] > 0 and 0 <= row["piqe"] <= 100
+    # A report folder's cached results hold one projection.
+    from pis3r.errors import InputError
+    from pis3r.eval.runner import _check_cache
+
+    _check_cache(tmp_path / "cache", EvalConfig(("pis3r",), crop=0.0, projection="cylindrical"))
+    with pytest.raises(InputError, match="made with --projection cylindrical"):
+        _check_cache(tmp_path / "cache", EvalConfig(("pis3r",), crop=0.0))
+
+
 @pytest.mark.slow
 def test_eval_command_end_to_end_and_resume(tmp_path):
     data = tiny_dataset(tmp_path / "tiny")

@@ -32,6 +32,7 @@ import numpy as np
 
 from pis3r.errors import Pis3rError
 from pis3r.io import to_uint8
+from pis3r.projection import DEFAULT_PROJECTION
 from pis3r.reconstruct.options import DEFAULT_MATCHER
 
 DEFAULT_TIMEOUT_S = 300.0
@@ -76,14 +77,15 @@ def _from_bgr_canvas(canvas: np.ndarray) -> MethodCanvas:
 
 
 def stitch_pis3r(reference: np.ndarray, target: np.ndarray, geometry: bool,
-                 matcher: str = DEFAULT_MATCHER) -> MethodOutput:
+                 matcher: str = DEFAULT_MATCHER, projection: str = DEFAULT_PROJECTION) -> MethodOutput:
     """pis3r with its default :class:`~pis3r.options.StitchOptions`, except the weight-free
-    classical backend on CPU (what every user has) and the ``matcher`` given; with ``geometry``
-    one canvas per camera from one reconstruction (``ref="all"``)."""
+    classical backend on CPU (what every user has) and the ``matcher`` and ``projection`` given;
+    with ``geometry`` one canvas per camera from one reconstruction (``ref="all"``)."""
     from pis3r.api import stitch
     from pis3r.options import StitchOptions
 
-    options = StitchOptions(backend="classical", device="cpu", ref="all" if geometry else 0, matcher=matcher)
+    options = StitchOptions(backend="classical", device="cpu", ref="all" if geometry else 0, matcher=matcher,
+                            projection=projection)
     start = time.perf_counter()
     result = stitch([reference, target], options)
     seconds = time.perf_counter() - start
@@ -144,11 +146,12 @@ CAMERA_METHODS = ("pis3r", "apap")
 
 
 def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: float = DEFAULT_TIMEOUT_S,
-               threads: int = 1, geometry: bool = False, matcher: str = DEFAULT_MATCHER) -> MethodOutput:
+               threads: int = 1, geometry: bool = False, matcher: str = DEFAULT_MATCHER,
+               projection: str = DEFAULT_PROJECTION) -> MethodOutput:
     """Run method ``name`` on ``(H, W, 3)`` images in a child process with a ``timeout`` (s),
     using at most ``threads`` CPU threads (OpenCV and torch). ``geometry``: also ask for the
-    target-view canvas and relative pose (methods in ``CAMERA_METHODS``); ``matcher``: pis3r's
-    (the peers have their own).
+    target-view canvas and relative pose (methods in ``CAMERA_METHODS``); ``matcher`` and
+    ``projection``: pis3r's (the peers have their own).
 
     Raises :class:`MethodFailure` for a crash, timeout or refusal."""
     if name not in METHODS:
@@ -156,7 +159,7 @@ def run_method(name: str, reference: np.ndarray, target: np.ndarray, timeout: fl
     with tempfile.TemporaryDirectory(prefix="pis3r-eval-") as tmp:
         inputs, output, error = (Path(tmp) / f for f in ("inputs.npz", "output.npz", "error.txt"))
         np.savez(inputs, reference=reference, target=target)
-        args = [name, str(threads), str(int(geometry)), matcher, str(inputs), str(output), str(error)]
+        args = [name, str(threads), str(int(geometry)), matcher, projection, str(inputs), str(output), str(error)]
         exit_code = _server().run(args, timeout)
         if exit_code is None:
             raise MethodFailure(f"{name} timed out after {timeout:g} s")
@@ -280,7 +283,8 @@ def _unpack(arrays: dict) -> MethodOutput:
                         arrays.get("relative_pose"))
 
 
-def _child(name: str, threads: str, geometry: str, matcher: str, inputs: str, output: str, error: str) -> int:
+def _child(name: str, threads: str, geometry: str, matcher: str, projection: str, inputs: str, output: str,
+           error: str) -> int:
     """Run one method in the child process: write its output and return 0, or write one line
     saying why it failed to ``error`` and return 1."""
     import torch
@@ -291,7 +295,7 @@ def _child(name: str, threads: str, geometry: str, matcher: str, inputs: str, ou
     with np.load(inputs) as data:
         reference, target = data["reference"], data["target"]
     try:
-        method = partial(stitch_pis3r, matcher=matcher) if name == "pis3r" else METHODS[name]
+        method = partial(stitch_pis3r, matcher=matcher, projection=projection) if name == "pis3r" else METHODS[name]
         result = method(reference, target, bool(int(geometry)))
     except Exception as exc:  # any failure of a peer is a result here, reported in one line
         Path(error).write_text(f"{exc.__class__.__name__}: {exc}".splitlines()[0])

@@ -27,18 +27,19 @@ DEFAULT_METHODS = "pis3r,opencv,opencv-scans,stitching,apap"
                    "0: no ground truth, score the uncropped pairs with NIQE / PIQE.")
 @click.option("--timeout", type=click.FloatRange(1.0), default=300.0, show_default=True,
               help="Seconds one method may take on one pair; beyond, it counts as a failure.")
-@click_options("matcher")
+@click_options("matcher", "projection")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--pose-only", is_flag=True,
               help="Only reconstruct (classical backend, no rendering): the exported cameras against the GT "
                    "cameras of every case that has them (of calibrated scenes: every pair of neighbouring "
                    "views and of views three apart too), with the focal found, its source and the interval "
                    "of focals the photos cannot tell apart; prints a table, writes OUTDIR/poses.md and poses.csv.")
-def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, matcher, quiet, pose_only):
+def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, matcher, projection, quiet, pose_only):
     """Evaluate stitchers on DATA: a `pis3r synth` output or a folder of pair folders
     (ref.*, tgt.*; the crop protocol makes their ground truth). Finished case x method
     results are cached in OUTDIR and skipped when the command is run again (with the same
-    --crop and --matcher: another needs another OUTDIR)."""
+    --crop, --matcher and --projection: another needs another OUTDIR). A panorama projection
+    needs --crop 0: the crop protocol scores perspective images of the reference camera."""
     from pis3r.eval.cases import discover_cases
     from pis3r.eval.margins import per_pair_table
 
@@ -56,11 +57,16 @@ def eval_command(data, outdir, methods, workers, scheduler, crop, timeout, match
     from pis3r.eval.report import write_report
     from pis3r.eval.runner import CASE_TASK, EvalConfig, run_evaluation
 
+    if projection != "perspective" and crop > 0:
+        raise InputError(f"--projection {projection} needs --crop 0: the crop protocol scores perspective images "
+                         f"of the reference camera against its photo")
+
     names = tuple(m.strip() for m in methods.split(",") if m.strip())
     if not names:
         raise InputError("--methods: give at least one method")
     threads = max(1, (os.cpu_count() or 1) // workers) if scheduler is None else 1
-    config = EvalConfig(methods=names, crop=crop, matcher=matcher, timeout=timeout, threads=threads)
+    config = EvalConfig(methods=names, crop=crop, matcher=matcher, projection=projection, timeout=timeout,
+                        threads=threads)
     specs = discover_cases(data)
     rows, errors = run_evaluation(specs, config, outdir, workers=workers, scheduler=scheduler, progress=not quiet)
     # Only the methods asked for this time, even if the cache holds others.

@@ -32,6 +32,7 @@ from pis3r.eval.geometry import pose_error, score_geometry
 from pis3r.eval.registration import exact_homography, place
 from pis3r.eval.scoring import register_and_score, score_failure, score_placed
 from pis3r.io import encode_png, write_bytes, write_json
+from pis3r.projection import DEFAULT_PROJECTION
 from pis3r.reconstruct.options import DEFAULT_MATCHER
 
 CASE_TASK = "_case"
@@ -42,13 +43,15 @@ PREVIEW_WIDTH = 320
 class EvalConfig:
     """``methods``: names from :data:`pis3r.eval.baselines.METHODS`; ``crop``: share of each
     side of photo A kept as the reference (crop protocol), ``0`` = no ground truth: run on
-    the uncropped pairs and score with no-reference metrics (NIQE, PIQE) only; ``matcher``:
-    pis3r's (:data:`pis3r.reconstruct.options.MATCHERS`); ``timeout``: seconds per method run;
-    ``threads``: CPU threads per method run."""
+    the uncropped pairs and score with no-reference metrics (NIQE, PIQE) only; ``matcher`` and
+    ``projection``: pis3r's (:data:`pis3r.reconstruct.options.MATCHERS`,
+    :data:`pis3r.projection.PROJECTIONS`); ``timeout``: seconds per method run; ``threads``: CPU
+    threads per method run."""
 
     methods: tuple[str, ...]
     crop: float = 0.6
     matcher: str = DEFAULT_MATCHER
+    projection: str = DEFAULT_PROJECTION
     timeout: float = 300.0
     threads: int = 1
     lpips_device: str = "cpu"
@@ -118,7 +121,7 @@ def evaluate_method(spec: CaseSpec, method: str, config: EvalConfig) -> TaskResu
     row = {**_case_fields(spec), "method": method}
     try:
         output = run_method(method, case.reference, case.target, config.timeout, config.threads, geometry,
-                            config.matcher)
+                            config.matcher, config.projection)
     except MethodFailure as exc:
         row.update(status="failed", failure=str(exc), seconds=math.nan, registered=False, reg_reason=str(exc))
         if config.ground_truth:
@@ -193,18 +196,20 @@ def _jsonable(value):
 
 
 def _check_cache(outdir: Path, config: EvalConfig) -> None:
-    """Cached results are only valid for the crop and the matcher they were made with: record
-    them on first use of ``outdir`` and refuse others (folders from before the matcher option
-    hold the default's)."""
+    """Cached results are only valid for the crop, the matcher and the projection they were made
+    with: record them on first use of ``outdir`` and refuse others (folders from before those
+    options hold their defaults)."""
     path = outdir / "config.json"
     if path.is_file():
         cached = json.loads(path.read_text())
         for flag, value, asked in (("--crop", cached["crop"], config.crop),
-                                   ("--matcher", cached.get("matcher", DEFAULT_MATCHER), config.matcher)):
+                                   ("--matcher", cached.get("matcher", DEFAULT_MATCHER), config.matcher),
+                                   ("--projection", cached.get("projection", DEFAULT_PROJECTION),
+                                    config.projection)):
             if value != asked:
                 raise InputError(f"{outdir} holds results made with {flag} {value}; use another report folder")
     else:
-        write_json(path, {"crop": config.crop, "matcher": config.matcher})
+        write_json(path, {"crop": config.crop, "matcher": config.matcher, "projection": config.projection})
 
 
 def run_evaluation(
