@@ -14,7 +14,8 @@ its own, one method after the other: wall seconds and peak memory of that proces
 Columns: seconds, peak GB, photos placed of the set (OpenCV: its ``component()``; stitching: the
 photos its subsetter keeps; pis3r: the views its report lists), the result's size, and NIQE and
 PIQE (lower is better; the paper's protocol where there is no ground truth) on the largest
-axis-aligned rectangle the result's filled pixels hold, resized to ``SCORE_HEIGHT`` rows, the
+axis-aligned rectangle the result's filled pixels hold (what ``--crop`` cuts to:
+:func:`pis3r.stitch.crop.largest_rectangle`), resized to ``SCORE_HEIGHT`` rows, the
 same for every method.
 
 Then the crop protocol extended to sets: every photo copied at most ``CROP_SET_SIDE`` long (PNG,
@@ -40,6 +41,7 @@ import cv2
 import numpy as np
 
 from pis3r.eval.metrics import niqe, piqe
+from pis3r.stitch.crop import largest_rectangle
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "panorama"
 PIS3R = Path(sys.executable).with_name("pis3r")
@@ -101,24 +103,10 @@ def method_command(method: str, photos: list[Path], out: Path, projection: str) 
     return [sys.executable, "-c", _OPENCV if method == "opencv" else _STITCHING, str(out), *map(str, photos)]
 
 
-def largest_filled_rectangle(filled: np.ndarray) -> tuple[slice, slice]:
-    """Rows and columns of the largest axis-aligned rectangle of ``filled`` ``(H, W)`` bool pixels
-    (found on a copy at most 1000 px long, then shrunk by a pixel of it so it stays inside)."""
-    import largestinteriorrectangle
-
-    scale = min(1.0, 1000 / max(filled.shape))
-    small = cv2.resize(filled.astype(np.uint8), None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) == 1
-    x, y, w, h = (int(v) for v in largestinteriorrectangle.lir(small))
-    if w <= 2 or h <= 2:
-        return slice(0, 0), slice(0, 0)
-    return (slice(int(np.ceil((y + 1) / scale)), int((y + h - 1) / scale)),
-            slice(int(np.ceil((x + 1) / scale)), int((x + w - 1) / scale)))
-
-
 def scores(image: np.ndarray, filled: np.ndarray) -> dict:
     """NIQE and PIQE of ``image`` ``(H, W, 3)`` float RGB in [0, 1] on its largest filled rectangle,
     resized to ``SCORE_HEIGHT`` rows, and that rectangle's size."""
-    rows, cols = largest_filled_rectangle(filled)
+    rows, cols = largest_rectangle(filled)
     crop = image[rows, cols]
     if crop.shape[0] < 2 * 96 or crop.shape[1] < 2 * 96:
         return {"niqe": None, "piqe": None, "rectangle": f"{crop.shape[1]}x{crop.shape[0]}"}
@@ -128,7 +116,7 @@ def scores(image: np.ndarray, filled: np.ndarray) -> dict:
     return {"niqe": niqe(resized), "piqe": piqe(resized), "rectangle": f"{crop.shape[1]}x{crop.shape[0]}"}
 
 
-def read_result(method: str, out: Path, photos: int) -> dict:
+def read_result(method: str, out: Path) -> dict:
     """The stitched image, its filled pixels and the photos placed, from ``out``."""
     if method == "pis3r":
         report = json.loads((out / "report.json").read_text())
@@ -152,7 +140,7 @@ def measure(method: str, photos: list[Path], tmp: Path, projection: str, run_onc
     row = {"method": method, "seconds": run["seconds"], "gb": run["gb"], "ok": run["rc"] == 0, "note": run["last"]}
     if not row["ok"]:
         return row
-    result = read_result(method, out, len(photos))
+    result = read_result(method, out)
     placed = result["placed"]
     if placed is None and run["last"].startswith("placed "):
         placed = int(run["last"].split()[1])
@@ -215,7 +203,7 @@ def crop_protocol(folder: Path, methods: list[str], tmp: Path, crop: float, run_
         run = run_once(method_command(method, inputs, out, "perspective"))
         row = {"set": folder.name, "method": method, "ok": run["rc"] == 0, "seconds": run["seconds"]}
         if row["ok"]:
-            result = read_result(method, out, len(inputs))
+            result = read_result(method, out)
             if method == "pis3r":
                 offset = json.loads((out / "camera.json").read_text())["ref_offset"]
                 scores = score_exact(result["image"], tuple(offset), case, result["filled"])

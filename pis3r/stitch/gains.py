@@ -13,7 +13,7 @@ one linear solve. The gains are then divided by their geometric mean: the turn c
 photos' average exposure, the reference's gain included. Pinned to the reference instead, the
 cathedral's 16 other photos were brought to its exposure, 0.6-0.9 x theirs (it faces the lit
 apse): the whole turn darker, NIQE 3.62 against 3.27 at the average (and 3.33 with no gains;
-OpenCV's Stitcher 3.47). A panorama keeps the reference's rays, not its colours.
+OpenCV's Stitcher 3.47; all four on one rectangle of each result, README). A panorama keeps the reference's rays, not its colours.
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from pis3r.camera import pixel_rays
 from pis3r.mesh import grid_vertices
 from pis3r.projection import (CYLINDER_LATITUDE_LIMIT_DEG, CYLINDER_MAX_LATITUDE_DEG, PanoramaCamera, canvas_pixels,
                               canvas_rays, level_rotation)
@@ -156,7 +157,7 @@ def border_rays(K: np.ndarray, width: int, height: int) -> np.ndarray:
     pixels = np.concatenate([np.stack([xs, np.zeros_like(xs)], 1), np.stack([np.full_like(ys, width - 1), ys], 1),
                              np.stack([xs[::-1], np.full_like(xs, height - 1)], 1),
                              np.stack([np.zeros_like(ys), ys[::-1]], 1)])
-    return np.hstack([pixels, np.ones((len(pixels), 1))]) @ np.linalg.inv(K).T
+    return pixel_rays(pixels, K)
 
 
 def _panorama_camera(model: str, world_to_canvas: np.ndarray, centre: np.ndarray, scale: float,

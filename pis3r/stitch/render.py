@@ -229,15 +229,6 @@ def _exposures(scene: Scene, raster: Raster, indices: list[int], window, ref_cam
     reference = ref_image[::stride, ::stride].reshape(-1, 3)
     t2_ref = grid_squared_tangents(ref_camera.K, slice(0, ref_image.shape[0], stride),
                                    slice(0, ref_image.shape[1], stride)).ravel()
-    return fit_exposures(scene, layer, uv, indices, reference, t2_ref, ref_camera)
-
-
-def fit_exposures(scene: Scene, layer: np.ndarray, uv: np.ndarray, indices: list[int], reference: np.ndarray,
-                  t2_ref: np.ndarray, ref_camera: Camera) -> list[Exposure]:
-    """Per layer ``k`` (view ``indices[k]``), its :class:`~pis3r.stitch.exposure.Exposure` from the
-    canvas samples inside the reference: ``layer`` ``(N,)`` the winning layer of each, ``uv``
-    ``(N, 2)`` the view pixel it shows, ``reference`` ``(N, 3)`` the reference's colour there and
-    ``t2_ref`` ``(N,)`` the squared tangent of its reference pixel (``ref_camera``)."""
     ref_t2_max = corner_t2(ref_camera.K, ref_camera.width, ref_camera.height)
     exposures = []
     for k, index in enumerate(indices):
