@@ -43,6 +43,7 @@ from pis3r.stitch.crop import cropped_camera, largest_rectangle
 from pis3r.stitch.panorama import choose_projection, render_to_panorama
 from pis3r.stitch.render import render_to_canvas
 from pis3r.learned_features import LEARNED_NETWORKS
+from pis3r.memory import release_free_memory
 from pis3r.camera import Camera
 from pis3r.projection import CAMERA_MODELS, PanoramaCamera
 from pis3r.warmup import CLASSICAL_MODULES, single_threaded_blas, warm_up_in_background
@@ -88,6 +89,8 @@ def stitch(
                 parallax = scene.parallax or estimate_parallax(photos[order[0]].pixels, photos[order[1]].pixels)
             timer.say(f"parallax: {parallax.label} (level {parallax.level:.2f})")
             refs = scene.indices if options.ref == "all" else (order[0],)
+            # What the reconstruction freed goes back before a canvas is made (pis3r.memory).
+            release_free_memory()
             composites = [composite(scene, index, options, timer) for index in refs]
     results = [
         StitchResult(c.image, c.mask, c.camera, c.ref_offset, index, scene,

@@ -127,6 +127,21 @@ def test_pure_rotation_uses_the_homography_model():
     np.testing.assert_allclose(scene.views[1].camera.t, 0)
     angle = np.degrees(np.linalg.norm(Rotation.from_matrix(scene.views[1].camera.R @ turned.R.T).as_rotvec()))
     assert angle < 1.0
+    # A rotation's depth is exact everywhere: its confidence is ones that take no memory.
+    for view in scene.views:
+        assert (view.confidence == 1).all() and view.confidence.strides == (0, 0)
+
+
+def test_a_plane_s_confidence_is_zero_above_its_horizon():
+    from pis3r.camera import intrinsics
+    from pis3r.reconstruct.geometry import plane_depth
+    from pis3r.reconstruct.views import model_confidence
+
+    # A floor a unit below the camera (y down): the rows above the principal point see sky.
+    depth = plane_depth(intrinsics(400, 400, 300), np.array([0.0, 1.0, 0.0]), 1.0, 400, 300)
+    confidence = model_confidence(depth)
+    assert confidence.dtype == np.float32 and confidence.strides != (0, 0)
+    assert (confidence[:140] == 0).all() and (confidence[160:] == 1).all()
 
 
 def test_identical_and_unrelated_images_are_refused():

@@ -335,6 +335,20 @@ def test_gl_renders_a_canvas_in_strips_as_it_renders_it_whole(monkeypatch):
     assert np.abs(strips.image[same] - whole.image[same]).max() < 1e-3
 
 
+def test_a_gl_raster_s_depth_holds_no_other_channel_alive():
+    """The canvas's deferred depth outlives the raster's layer and source pixels: the three are
+    separate arrays, so a panorama's 80 MP of source pixels are freed when the render ends."""
+    if not raster.gl_available():
+        pytest.skip("no EGL context on this machine: only the numpy rasteriser runs here")
+    triangle = raster.Triangles(np.array([[0, 0], [40, 0], [0, 30]], np.float32), np.ones(3, np.float32),
+                                np.array([[1, 2], [3, 4], [5, 6]], np.float32), np.array([[0, 1, 2]], np.int32))
+    out = raster.rasterise([triangle], 50, 40, "gl")
+    for a, b in [(out.z, out.uv), (out.z, out.layer), (out.uv, out.layer)]:
+        assert not np.shares_memory(a, b)
+    assert out.z.base is None and out.layer.dtype == np.int16
+    assert out.layer[5, 5] == 0 and out.layer[35, 45] == -1 and np.isinf(out.z[35, 45])
+
+
 def read_mesh_ply_strict(data: bytes):
     """Parse a binary little-endian PLY with xyz + rgb vertices and triangle faces, failing
     on anything that deviates from that format."""

@@ -40,10 +40,17 @@ def homography_views(ref: Photo, other: Photo, pair: PairGeometry) -> tuple[View
         depth_b = geometry.plane_depth(pair.K_b, R @ n, 1.0 + float(n @ (R.T @ t)), other.width, other.height)
     cam_a = Camera.identity(pair.K_a, ref.width, ref.height)
     cam_b = Camera(pair.K_b, R, t, other.width, other.height)
-    return (
-        View(ref.pixels, cam_a, depth_a, (depth_a > 0).astype(np.float32), ref.name),
-        View(other.pixels, cam_b, depth_b, (depth_b > 0).astype(np.float32), other.name),
-    )
+    return (View(ref.pixels, cam_a, depth_a, model_confidence(depth_a), ref.name),
+            View(other.pixels, cam_b, depth_b, model_confidence(depth_b), other.name))
+
+
+def model_confidence(depth: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 confidence of a depth the model gives exactly (a rotation's, a
+    plane's): 1 where it is in front of the camera, else 0. Where that is everywhere (every
+    rotation, most planes) a read-only broadcast of 1: a turn's photos, tens of megapixels
+    each, need no map of ones."""
+    in_front = depth > 0
+    return np.broadcast_to(np.float32(1.0), depth.shape) if in_front.all() else in_front.astype(np.float32)
 
 
 def views_3d(ref: Photo, other: Photo, pair: PairGeometry, memoised: Callable[[tuple, Callable], Any],

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from pis3r.camera import pixel_rays
+from pis3r.memory import release_free_memory
 from pis3r.mesh import grid_vertices
 from pis3r.projection import (CYLINDER_LATITUDE_LIMIT_DEG, CYLINDER_MAX_LATITUDE_DEG, PanoramaCamera, canvas_pixels,
                               canvas_rays, level_rotation)
@@ -68,21 +69,9 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     others = [index for index in range(len(scene.views)) if index != ref_index]
     world_to_canvas = level_rotation([ref.R] + [scene.views[index].camera.R for index in others])
     to_canvas = world_to_canvas @ ref.R.T  # from the reference camera's frame
-    with ThreadPoolExecutor(2) as pool:
-        meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
-    # Each mesh's points in the canvas frame: their length is the distance from its centre.
-    rays = {index: (points @ to_canvas.T).astype(np.float64) for index, _, points, _ in meshes}
     border = border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
-    used = [rays[index][grid_vertices(mesh.keep)] for index, mesh, _, _ in meshes]
-    camera = _panorama_camera(model, world_to_canvas, -ref.R.T @ ref.t, float(ref.K[0, 0]), [border, *used],
-                              max_pixels)
-    first_copies = {}
-
-    def project(placed):
-        first_copies[placed[0]] = copies = _on_canvas(camera, rays[placed[0]])
-        return copies
-
-    surfaces, counts = _surfaces(scene, ref_index, max_stretch, project, coarse=False, meshes=meshes)
+    camera, surfaces, counts, beyond = _panorama_surfaces(scene, ref_index, model, world_to_canvas, border,
+                                                          max_stretch, max_pixels)
     raster = rasterise([Triangles(s.xy, s.z, s.uv, s.faces) for s in surfaces], camera.width, camera.height,
                        raster_backend)
     indices = [s.view for s in surfaces]
@@ -97,6 +86,10 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
         exposures = [Exposure(gains[view].astype(np.float32)) for view in indices]
         reference_exposure = Exposure(gains[ref_index].astype(np.float32))
         np.clip(reference_exposure.apply_gain(ref_colours), 0.0, 1.0, out=ref_colours)
+    # Not read again: a turn's surfaces (half a gigabyte, in small arrays) are freed and handed
+    # back before its colours are made.
+    del surfaces
+    release_free_memory()
     # Gains alone: the squared tangents, which a falloff would need, are not read.
     image = sample_colours(scene, raster, indices, exposures,
                            lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32))
@@ -104,8 +97,6 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     np.copyto(image[box], ref_colours, where=inside[..., None])
     source[box][inside] = ref_index
     corner = camera.rays_to_pixels(border[:1] @ world_to_canvas)[0]
-    beyond = sum(int((~np.isfinite(first_copies[index][0][0]).all(axis=-1) & grid_vertices(mesh.keep)).sum())
-                 for index, mesh, _, _ in meshes)
 
     # The deferred depth keeps the z-buffer alone: the rest of the raster is freed on return.
     depth = raster.z
@@ -121,6 +112,35 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     return Canvas(image=image, depth=Deferred(depth_with_reference), source=source, camera=camera,
                   ref_offset=(int(round(corner[0])), int(round(corner[1]))), dropped_points=beyond,
                   surfaces=counts, exposures={**dict(zip(indices, exposures)), ref_index: reference_exposure})
+
+
+def _panorama_surfaces(scene: Scene, ref_index: int, model: str, world_to_canvas: np.ndarray,
+                       border: np.ndarray, max_stretch: float,
+                       max_pixels: int) -> tuple[PanoramaCamera, list, list, int]:
+    """``(camera, surfaces, counts, beyond)``: the ``model`` canvas in the frame ``world_to_canvas``
+    that holds the reference's ``border`` rays and every other view's mesh, those meshes cut into surfaces on it (:func:`pis3r.stitch.render._surfaces`) and
+    the count of mesh vertices beyond a cylinder's latitude limit. The meshes and their rays
+    stay here: they are freed before anything the size of the canvas is made."""
+    ref = scene.views[ref_index].camera
+    to_canvas = world_to_canvas @ ref.R.T
+    others = [index for index in range(len(scene.views)) if index != ref_index]
+    with ThreadPoolExecutor(2) as pool:
+        meshes = list(pool.map(lambda index: _mesh_in_reference(scene, index, ref_index), others))
+    # Each mesh's points in the canvas frame: their length is the distance from its centre.
+    rays = {index: (points @ to_canvas.T).astype(np.float64) for index, _, points, _ in meshes}
+    used = [rays[index][grid_vertices(mesh.keep)] for index, mesh, _, _ in meshes]
+    camera = _panorama_camera(model, world_to_canvas, -ref.R.T @ ref.t, float(ref.K[0, 0]), [border, *used],
+                              max_pixels)
+    first_copies = {}
+
+    def project(placed):
+        first_copies[placed[0]] = copies = _on_canvas(camera, rays[placed[0]])
+        return copies
+
+    surfaces, counts = _surfaces(scene, ref_index, max_stretch, project, coarse=False, meshes=meshes)
+    beyond = sum(int((~np.isfinite(first_copies[index][0][0]).all(axis=-1) & grid_vertices(mesh.keep)).sum())
+                 for index, mesh, _, _ in meshes)
+    return camera, surfaces, counts, beyond
 
 
 def _joint_gains(scene: Scene, surfaces: list, camera: PanoramaCamera, ref_index: int, to_canvas: np.ndarray,

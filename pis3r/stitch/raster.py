@@ -135,13 +135,19 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
         ibo = context.buffer(np.ascontiguousarray(batch.faces, dtype=np.int32).tobytes())
         vao = context.vertex_array(program, [(vbo, "2f 1f 2f", "in_xy", "in_z", "in_uv")], ibo, index_element_size=4)
         arrays.append((index, vao, vbo, ibo))
-    out = np.empty((height, width, 4), np.float32)
+    # Three arrays rather than the framebuffer's one RGBA image: the canvas's depth outlives its
+    # attributes (a panorama's source pixels are 8 bytes of its 80 MP), and a view of one
+    # channel would keep all four alive.
+    layer = np.empty((height, width), np.int16)
+    z = np.empty((height, width), np.float32)
+    uv = np.empty((height, width, 2), np.float32)
     max_side = min(context.info["GL_MAX_RENDERBUFFER_SIZE"], *context.info["GL_MAX_VIEWPORT_DIMS"])
     tile_w = min(width, max_side)
     tile_h = min(height, max_side, max(1, GL_TILE_PIXELS // tile_w))
     color = context.renderbuffer((tile_w, tile_h), components=4, dtype="f4")
     depth = context.depth_renderbuffer((tile_w, tile_h))
     framebuffer = context.framebuffer(color_attachments=[color], depth_attachment=depth)
+    read_back = np.empty(tile_w * tile_h * 4, np.float32)
     try:
         framebuffer.use()
         context.enable(moderngl.DEPTH_TEST)
@@ -157,20 +163,18 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
                     program["layer"].value = float(index)
                     vao.render(moderngl.TRIANGLES)
                 # The framebuffer's row 0 is the bottom row, and canvas row y0 was mapped to it.
-                tile = out[y0:y0 + h, x0:x0 + w]
-                if tile.flags.c_contiguous:
-                    framebuffer.read_into(tile, viewport=(0, 0, w, h), components=4, dtype="f4")
-                else:
-                    pixels = framebuffer.read(viewport=(0, 0, w, h), components=4, dtype="f4")
-                    tile[...] = np.frombuffer(pixels, np.float32).reshape(h, w, 4)
+                tile = read_back[:h * w * 4].reshape(h, w, 4)
+                framebuffer.read_into(tile, viewport=(0, 0, w, h), components=4, dtype="f4")
+                rows, cols = slice(y0, y0 + h), slice(x0, x0 + w)
+                uv[rows, cols] = tile[..., :2]
+                z[rows, cols] = tile[..., 2]
+                # The shader writes layer + 1 as a float, exactly: the conversion needs no rounding.
+                np.subtract(tile[..., 3], 1, out=layer[rows, cols], casting="unsafe")
     finally:
         for _, vao, vbo, ibo in arrays:
             vao.release(), vbo.release(), ibo.release()
         framebuffer.release(), color.release(), depth.release()
-    # The shader writes layer + 1 as a float, exactly: the conversion needs no rounding.
-    layer = out[..., 3].astype(np.int16)
-    layer -= 1
-    return Raster(layer=layer, z=out[..., 2], uv=out[..., :2])
+    return Raster(layer=layer, z=z, uv=uv)
 
 
 def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raster:
