@@ -167,11 +167,32 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
         scene = (choice.scene if choice.scene is not None
                  else create_backend(backend, backend_options, memo).reconstruct(ordered))
     scene = scene.in_input_order(order)
+    if len(photos) > 2:
+        for line in placement_lines(scene, order[0], len(photos)):
+            timer.say(line)
     for dropped in scene.dropped:
         log.add(f"dropped image {dropped.index} ({dropped.name}): {dropped.reason}")
     for line in scene.warnings:
         log.add(line)
     return scene, backend, choice
+
+
+def placement_lines(scene: Scene, ref_index: int, count: int) -> list[str]:
+    """One progress line per registered photo of a set of ``count``, in input order: the
+    reference (input ``ref_index``), or the matches its pose rests on and how far off that pose
+    may be (:class:`pis3r.reconstruct.confidence.PoseConfidence`; a learned backend measures
+    none). Dropped photos have their warning."""
+    lines = []
+    for index, view in zip(scene.indices, scene.views):
+        head, confidence = f"photo {index + 1} of {count} ({view.name}):", view.pose_confidence
+        if index == ref_index:
+            lines.append(f"{head} the reference")
+        elif confidence is None:
+            lines.append(f"{head} placed")
+        else:
+            lines.append(f"{head} placed on {confidence.inliers} matches, rotation within "
+                         f"{confidence.uncertainty_deg:.1f} deg" + ("" if confidence.reliable else " (unreliable)"))
+    return lines
 
 
 @dataclass

@@ -51,6 +51,18 @@ def test_an_image_that_cannot_be_registered_is_dropped_with_its_reason(small_pai
     assert [c["index"] for c in results[0].camera_json()["inputs"]] == [0, 2]
 
 
+def test_a_set_s_stitch_says_how_each_photo_was_placed(small_pair, capsys):
+    unrelated = np.random.default_rng(0).integers(0, 255, (160, 190, 3), dtype=np.uint8)
+    result = pis3r.stitch([small_pair[1], unrelated, small_pair[0]], ref=2, backend="classical", quiet=False)
+    lines = [line for line in capsys.readouterr().err.splitlines() if "photo " in line and " of 3 " in line]
+    inliers = result.scene.views[0].pose_confidence.inliers
+    assert lines[0] == (f"[pis3r] photo 1 of 3 (image_0): placed on {inliers} matches, rotation within "
+                        f"{result.scene.views[0].pose_confidence.uncertainty_deg:.1f} deg")
+    assert lines[1] == "[pis3r] photo 3 of 3 (image_2): the reference"
+    assert len(lines) == 2  # the unrelated photo is dropped, with its warning
+    assert any("dropped image 1" in w for w in result.report["warnings"])
+
+
 def test_large_inputs_are_downscaled_and_the_report_says_so(small_pair, monkeypatch):
     from pis3r import api
 
