@@ -223,7 +223,8 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
         if projection == "perspective":
             canvas = render_to_canvas(scene, position, options.max_canvas_scale)
         else:
-            canvas = render_to_panorama(scene, position, CAMERA_MODELS[projection])
+            canvas = render_to_panorama(scene, position, CAMERA_MODELS[projection],
+                                        feather=options.blend != "none")
     if options.projection == "auto":
         sub.say(f"projection: {projection} (auto)")
     if isinstance(canvas.camera, PanoramaCamera):
@@ -235,7 +236,8 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
         # In place, like the blend: each stage owns the canvas's pixels in turn (tens of megapixels).
         filled = fill_holes(canvas.image, canvas.occupied, radius=options.hole_radius, in_place=True)
     image = filled.image
-    # A panorama's reference is no window of the canvas: its border is not blended (yet).
+    # A panorama's reference is no window of the canvas: its border is not blended (yet); the
+    # seams between its other views were feathered as it was rendered.
     if canvas.under_reference is not None:
         with sub.stage("blend"):
             image = blend_reference_border(

@@ -141,6 +141,104 @@ def test_a_turn_s_exposures_are_evened_out_over_all_overlaps():
     assert colour_error(render_to_panorama(scene, 0, match_exposure=False), 1.0) > 0.02
 
 
+def test_the_seams_run_midway_between_views_and_are_feathered_across():
+    """Views 45 deg apart, the third at 0.7 of the others' exposure and no gains: the seam between
+    the second and the third runs midway (67.5 deg: both as far from their centres), drawn hard
+    it is a 30 % step, feathered the exposure ramps across the band in small steps."""
+    scene, to_reference = ring(gains=[1.0, 1.0, 0.7, 1.0, 1.0, 1.0, 1.0, 1.0])
+
+    def horizon(feather):
+        canvas = render_to_panorama(scene, 0, "equirectangular", match_exposure=False, feather=feather)
+        camera = canvas.camera
+        row = int(round(camera.rays_to_pixels(np.array([[0.0, 0.0, 1.0]]) @ camera.R.T @ camera.R)[0, 1]))
+        cols = np.arange(camera.width)
+        rays = camera.pixels_to_rays(np.stack([cols, np.full_like(cols, row)], 1).astype(np.float64))
+        longitude = np.degrees(np.arctan2(*(rays @ to_reference)[:, [0, 2]].T))
+        exposure = (canvas.image[row] / world_colour(rays @ to_reference)).mean(axis=1)
+        return canvas.source[row], longitude, exposure
+
+    source, longitude, hard = horizon(False)
+    between = (longitude > 50) & (longitude < 85)
+    seam = longitude[between][np.flatnonzero(np.diff(source[between]))]
+    assert len(seam) == 1 and abs(seam[0] - 67.5) < 1.0
+    _, _, soft = horizon(True)
+    assert np.abs(np.diff(hard[between])).max() > 0.25
+    assert np.abs(np.diff(soft[between])).max() < 0.12
+    # Beyond the band each view shows alone, at its own exposure.
+    np.testing.assert_allclose(soft[between & (longitude < 60)], 1.0, atol=0.01)
+    np.testing.assert_allclose(soft[between & (longitude > 75)], 0.7, atol=0.01)
+
+
+@pytest.mark.parametrize("blend, feather", [("none", False), ("feather", True), ("multiband", True)])
+def test_blend_none_leaves_a_panorama_s_seams_as_the_z_buffer_drew_them(blend, feather, monkeypatch):
+    from pis3r import api
+    from pis3r.progress import StageTimer
+
+    asked = []
+
+    def render(*args, **kwargs):
+        asked.append(kwargs["feather"])
+        return render_to_panorama(*args, **kwargs)
+
+    monkeypatch.setattr(api, "render_to_panorama", render)
+    scene, _ = ring()
+    api.composite(scene, 0, pis3r.StitchOptions(projection="spherical", blend=blend), StageTimer(quiet=True))
+    assert asked == [feather]
+
+
+def test_around_the_reference_the_views_fade_toward_its_colours():
+    """The views beneath and around the reference at 0.5, the reference at 0.6: next to its
+    footprint the canvas takes the reference's gain, a band away its own colours again, the
+    footprint itself untouched (the reference is pasted there)."""
+    from pis3r.stitch.seams import tone_toward_reference
+
+    image = np.full((200, 300, 3), 0.5, np.float32)
+    box = (slice(60, 140), slice(100, 200))
+    ys, xs = np.mgrid[0:80, 0:100]
+    inside = (xs - 50) ** 2 / 50**2 + (ys - 40) ** 2 / 40**2 < 1  # a curved footprint
+    tone_toward_reference(image, box, inside, np.full((80, 100, 3), 0.6, np.float32), np.ones((80, 100), bool), 30.0)
+    row = image[100, :, 0]
+    assert np.all(image[60:140, 100:200][inside] == 0.5)
+    assert row[99] == pytest.approx(0.6, abs=0.01) and row[60] == pytest.approx(0.5, abs=0.005)
+    assert np.all(np.diff(row[40:99]) >= -1e-6) and row[85] == pytest.approx(0.55, abs=0.02)
+
+
+def test_seam_keys_rank_by_centrality_alone_where_distances_do_not_compare():
+    from pis3r.stitch.panorama import SEAM_CENTRALITY, seam_key
+
+    camera = Camera(intrinsics(F, W, H), np.eye(3), np.zeros(3), W, H)
+    uv = np.array([[(W - 1) / 2, (H - 1) / 2], [-0.5, (H - 1) / 2], [-0.5, -0.5]], np.float32)
+    z = np.array([2.0, 2.0, 2.0], np.float32)
+    np.testing.assert_allclose(seam_key(z, uv, camera, by_distance=False), [1.0, 2.0, 3.0], rtol=1e-6)
+    np.testing.assert_allclose(seam_key(z, uv, camera), 2.0 * (1 + SEAM_CENTRALITY * np.array([0.0, 1.0, 2.0])),
+                               rtol=1e-6)
+
+
+def test_a_pixel_no_surface_s_own_raster_covers_is_left_bare():
+    """The canvas's raster claims a pixel for a surface that its own raster does not cover (the
+    two rasterisations disagree on a triangle's edge): it gets no colour and is reported bare."""
+    from types import SimpleNamespace
+
+    from pis3r.stitch.exposure import NEUTRAL
+    from pis3r.stitch.raster import Raster
+    from pis3r.stitch.seams import feather_views
+
+    photo = np.random.default_rng(0).random((H, W, 3)).astype(np.float32)
+    xy = np.array([[5, 5], [25, 5], [5, 25], [25, 25]], np.float32)
+    surface = SimpleNamespace(view=0, xy=xy, z=np.ones(4, np.float32), uv=xy * 2,
+                              faces=np.array([[0, 1, 2], [1, 3, 2]], np.int32))
+    layer = np.full((40, 40), -1, np.int16)
+    layer[5:25, 5:25] = 0
+    layer[30, 30] = 0
+    canvas = Raster(layer, np.where(layer >= 0, 1.0, np.inf).astype(np.float32), None)
+    image, bare = feather_views(Scene([View(photo, Camera(intrinsics(F, W, H), np.eye(3), np.zeros(3), W, H),
+                                            np.ones((H, W), np.float32), np.ones((H, W), np.float32))]),
+                                [surface], canvas, [NEUTRAL], band=4.0, by_distance=True)
+    assert np.argwhere(bare).tolist() == [[30, 30]]
+    np.testing.assert_allclose(image[15, 15], photo[30, 30], atol=1e-5)
+    assert (image[30, 30] == 0).all()
+
+
 def test_auto_keeps_perspective_where_the_views_fit_and_picks_the_canvas_by_latitude():
     narrow = Scene([photographed(yaw_pitch(0.0)), photographed(yaw_pitch(25.0))])
     assert choose_projection(narrow, 0, 3.0) == "perspective"

@@ -349,6 +349,29 @@ def test_a_gl_raster_s_depth_holds_no_other_channel_alive():
     assert out.layer[5, 5] == 0 and out.layer[35, 45] == -1 and np.isinf(out.z[35, 45])
 
 
+@pytest.mark.parametrize("backend", ["gl", "numpy"])
+def test_the_depth_test_ranks_by_a_batch_s_key_and_returns_the_true_depth(backend):
+    """Two overlapping squares, the first nearer: by depth it hides the second; given keys that
+    rank the second first, the second shows, with its own depth and source pixels."""
+    if backend == "gl" and not raster.gl_available():
+        pytest.skip("no EGL context on this machine: only the numpy rasteriser runs here")
+    xy = np.array([[2, 2], [30, 2], [2, 30], [30, 30]], np.float32)
+    faces = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+    near = raster.Triangles(xy, np.full(4, 1.0, np.float32), np.zeros((4, 2), np.float32), faces)
+    far = raster.Triangles(xy + 4, np.full(4, 2.0, np.float32), np.ones((4, 2), np.float32), faces)
+    by_depth = raster.rasterise([near, far], 40, 40, backend)
+    assert by_depth.layer[16, 16] == 0 and by_depth.z[16, 16] == pytest.approx(1.0)
+    near.key, far.key = np.full(4, 3.0, np.float32), np.full(4, 2.5, np.float32)
+    by_key = raster.rasterise([near, far], 40, 40, backend)
+    assert by_key.layer[16, 16] == 1 and by_key.z[16, 16] == pytest.approx(2.0)
+    np.testing.assert_allclose(by_key.uv[16, 16], 1.0)
+    assert by_key.layer[4, 4] == 0 and by_key.z[4, 4] == pytest.approx(1.0)
+    bare = raster.rasterise([near, far], 40, 40, backend, with_uv=False)
+    assert bare.uv is None
+    np.testing.assert_array_equal(bare.layer, by_key.layer)
+    np.testing.assert_array_equal(bare.z, by_key.z)
+
+
 def read_mesh_ply_strict(data: bytes):
     """Parse a binary little-endian PLY with xyz + rgb vertices and triangle faces, failing
     on anything that deviates from that format."""

@@ -17,6 +17,9 @@ full-resolution photos at the sub-pixel position the rasteriser interpolates.
   by the canvas: no triangle is stretched across it.
 - The reference keeps its pixels' rays: where it sees, the canvas shows the reference sampled
   at the pixel of the canvas pixel's ray (bicubic, the projection's only resampling).
+- Seams: where views overlap, the z-buffer ranks surfaces of a 3-D scene by distance, then by
+  how central their pixels are in their photos (:func:`seam_key`), and views placed as planes or
+  rotations by centrality alone; each seam is then feathered (:mod:`pis3r.stitch.seams`).
 - Exposure: around a turn most views never meet the reference, so the gains of all of them,
   the reference's included, are solved together over every pair's overlap and brought to the
   photos' average exposure (:mod:`pis3r.stitch.gains`), measured on a copy of the canvas of about
@@ -41,6 +44,8 @@ from pis3r.stitch.canvas import Canvas
 from pis3r.stitch.exposure import NEUTRAL, Exposure
 from pis3r.stitch.gains import overlap_statistics, solve_gains
 from pis3r.stitch.raster import Triangles, rasterise
+from pis3r.stitch.blend import BAND_FRACTION
+from pis3r.stitch.seams import SEAM_BAND_FRACTION, feather_views, tone_toward_reference
 from pis3r.stitch.render import COLOUR_INTERPOLATION, MAX_STRETCH, _mesh_in_reference, _surfaces, sample_colours
 
 # A panorama keeps the reference's resolution at its centre unless that makes more than this many
@@ -53,14 +58,22 @@ ARC_BINS = 3600
 GAIN_CANVAS_PIXELS = 400_000
 # Points sampled along each side of the reference's border to find its footprint on the canvas.
 BORDER_SAMPLES = 64
+# Where views of a 3-D scene overlap, surfaces within about this fraction of one distance are
+# ranked by how central their pixels are in their photo (a photo's rim is its most distorted,
+# vignetted and worst registered part): the seam between two views runs where both are as far
+# from their centres, not wherever their meshes' distances happen to cross. A nearer surface
+# still hides a farther one unless they are closer than this.
+SEAM_CENTRALITY = 0.05
 
 
 def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirectangular", match_exposure: bool = True,
                        raster_backend: str = "auto", max_stretch: float = MAX_STRETCH,
-                       max_pixels: int = PANORAMA_MAX_PIXELS) -> Canvas:
+                       max_pixels: int = PANORAMA_MAX_PIXELS, feather: bool = True) -> Canvas:
     """Render every view's surface of ``scene`` onto a ``model`` (``cylindrical`` or
     ``equirectangular``) canvas around camera ``ref_index`` (module docstring), with the
-    reference's rays sampled from its photo. ``max_pixels`` caps the canvas's size."""
+    reference's rays sampled from its photo. ``max_pixels`` caps the canvas's size;
+    ``feather``: the seams between views are feathered (:mod:`pis3r.stitch.seams`), else
+    each pixel is the view the z-buffer chose."""
     # Local homographies warp a view onto the reference's image plane, which a turn leaves
     # behind: on a panorama every view is placed by its camera and depth (a rotation's at 1).
     scene = replace(scene, views=tuple(replace(view, warp=None) for view in scene.views))
@@ -72,8 +85,14 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     border = border_rays(ref.K, ref.width, ref.height) @ to_canvas.T
     camera, surfaces, counts, beyond = _panorama_surfaces(scene, ref_index, model, world_to_canvas, border,
                                                           max_stretch, max_pixels)
-    raster = rasterise([Triangles(s.xy, s.z, s.uv, s.faces) for s in surfaces], camera.width, camera.height,
-                       raster_backend)
+    # A view placed as a plane or a rotation has no distance another view's can be compared with
+    # (each pair has its own plane): there the seams go by centrality alone.
+    by_distance = scene.model == "3d"
+    # Feathered, each surface's colours come from its own raster: the canvas's source pixels
+    # (8 bytes each of up to 80 MP) are not kept.
+    raster = rasterise([Triangles(s.xy, s.z, s.uv, s.faces, seam_key(s.z, s.uv, scene.views[s.view].camera,
+                                                                        by_distance))
+                        for s in surfaces], camera.width, camera.height, raster_backend, with_uv=not feather)
     indices = [s.view for s in surfaces]
     box, ref_pixels = _reference_footprint(camera, to_canvas, ref.K, ref.width, ref.height, border)
     inside = np.isfinite(ref_pixels[..., 0])
@@ -86,13 +105,21 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
         exposures = [Exposure(gains[view].astype(np.float32)) for view in indices]
         reference_exposure = Exposure(gains[ref_index].astype(np.float32))
         np.clip(reference_exposure.apply_gain(ref_colours), 0.0, 1.0, out=ref_colours)
-    # Not read again: a turn's surfaces (half a gigabyte, in small arrays) are freed and handed
-    # back before its colours are made.
-    del surfaces
+    # The meshes and rays (half a gigabyte in a turn, in small arrays) were freed: handed back
+    # before the canvas's colours are made.
     release_free_memory()
-    # Gains alone: the squared tangents, which a falloff would need, are not read.
-    image = sample_colours(scene, raster, indices, exposures,
-                           lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.float32))
+    if feather:
+        band = SEAM_BAND_FRACTION * min(ref.width, ref.height) * camera.scale / float(ref.K[0, 0])
+        image, bare = feather_views(scene, surfaces, raster, exposures, band, by_distance, raster_backend)
+        raster.layer[bare] = -1
+        # The reference is pasted verbatim: around it the views are toned toward its colours.
+        tone_toward_reference(image, box, inside, ref_colours, raster.layer[box] >= 0,
+                              BAND_FRACTION * min(ref.width, ref.height) * camera.scale / float(ref.K[0, 0]))
+    else:
+        # Gains alone: the squared tangents, which a falloff would need, are not read.
+        image = sample_colours(scene, raster, indices, exposures,
+                               lambda rows, cols: np.zeros((rows.stop - rows.start, cols.stop - cols.start),
+                                                           np.float32))
     source = np.asarray(indices + [-1], np.int16)[raster.layer]
     np.copyto(image[box], ref_colours, where=inside[..., None])
     source[box][inside] = ref_index
@@ -114,13 +141,24 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
                   surfaces=counts, exposures={**dict(zip(indices, exposures)), ref_index: reference_exposure})
 
 
+def seam_key(z: np.ndarray, uv: np.ndarray, camera, by_distance: bool = True) -> np.ndarray:
+    """``(N,)`` the depth test's key of vertices at distances ``z`` ``(N,)`` showing pixels ``uv``
+    ``(N, 2)`` of a photo of ``camera``'s size, from the pixel's squared radius from the photo's
+    centre (1 at the middle of a side): the distance lengthened by ``SEAM_CENTRALITY`` times it,
+    or without ``by_distance`` 1 plus it (the most central surface wins)."""
+    half = np.array([camera.width, camera.height], np.float32) / 2
+    radius2 = (((uv - (half - 0.5)) / half) ** 2).sum(axis=1)
+    return (z * (1 + SEAM_CENTRALITY * radius2) if by_distance else 1 + radius2).astype(np.float32)
+
+
 def _panorama_surfaces(scene: Scene, ref_index: int, model: str, world_to_canvas: np.ndarray,
                        border: np.ndarray, max_stretch: float,
                        max_pixels: int) -> tuple[PanoramaCamera, list, list, int]:
-    """``(camera, surfaces, counts, beyond)``: the ``model`` canvas in the frame ``world_to_canvas``
-    that holds the reference's ``border`` rays and every other view's mesh, those meshes cut into surfaces on it (:func:`pis3r.stitch.render._surfaces`) and
-    the count of mesh vertices beyond a cylinder's latitude limit. The meshes and their rays
-    stay here: they are freed before anything the size of the canvas is made."""
+    """``(camera, surfaces, counts, beyond)``: the ``model`` canvas in the frame
+    ``world_to_canvas`` that holds the reference's ``border`` rays and every other view's mesh,
+    those meshes cut into surfaces on it (:func:`pis3r.stitch.render._surfaces`) and the count of
+    mesh vertices beyond a cylinder's latitude limit. The meshes and their rays stay here: they
+    are freed before anything the size of the canvas is made."""
     ref = scene.views[ref_index].camera
     to_canvas = world_to_canvas @ ref.R.T
     others = [index for index in range(len(scene.views)) if index != ref_index]

@@ -4,7 +4,9 @@ Input: batches of triangles (one batch per view) with canvas pixel positions, a 
 ``z > 0`` per vertex and a 2-vector attribute per vertex (the source pixel it shows).
 Output, per canvas pixel whose centre a triangle covers: the nearest triangle's batch,
 its depth and its perspective-correct attribute (interpolated linearly in 3-D, i.e.
-``uv / z`` and ``1 / z`` linearly on the canvas).
+``uv / z`` and ``1 / z`` linearly on the canvas). A batch may give the depth test its own
+``key`` per vertex instead of ``z`` (interpolated the same way): a panorama ranks surfaces
+at nearly one depth by how central they are in their photo.
 
 - ``gl``: moderngl on an EGL context: Mesa's llvmpipe on a CPU, the GPU's driver where
   there is one. Depth + attribute go to one RGBA32F target, rendered in strips.
@@ -37,16 +39,18 @@ NUMPY_CHUNK = 4_000_000
 _VERTEX_SHADER = """
 #version 330
 uniform vec4 tile;       // x0, y0, width, height of the tile in canvas pixels
-uniform vec2 depth_map;  // ndc_z * z = depth_map.x * z + depth_map.y (ndc_z affine in 1/z)
+uniform vec2 depth_map;  // ndc_z * key = depth_map.x * key + depth_map.y (ndc_z affine in 1/key)
 in vec2 in_xy;
 in float in_z;
+in float in_key;
 in vec2 in_uv;
 out vec2 uv;
 out float z;
 void main() {
     // Canvas pixel centres sit at integers, framebuffer pixel centres at +0.5.
     vec2 ndc = (in_xy - tile.xy + 0.5) / tile.zw * 2.0 - 1.0;
-    gl_Position = vec4(ndc * in_z, depth_map.x * in_z + depth_map.y, in_z);
+    // The depth test reads ndc_z (of the key); w = z keeps the attributes perspective-correct.
+    gl_Position = vec4(ndc * in_z, depth_map.x * in_z + depth_map.y * (in_z / in_key), in_z);
     uv = in_uv;
     z = in_z;
 }
@@ -65,23 +69,30 @@ void main() { result = vec4(uv, z, layer + 1.0); }
 @dataclass
 class Triangles:
     """One batch: ``xy`` ``(N, 2)`` canvas pixel positions, ``z`` ``(N,)`` depth (> 0),
-    ``uv`` ``(N, 2)`` attribute, ``faces`` ``(M, 3)`` int32 vertex indices (either winding)."""
+    ``uv`` ``(N, 2)`` attribute, ``faces`` ``(M, 3)`` int32 vertex indices (either winding);
+    ``key`` ``(N,)`` (> 0) what the depth test compares instead of ``z``, if given."""
 
     xy: np.ndarray
     z: np.ndarray
     uv: np.ndarray
     faces: np.ndarray
+    key: np.ndarray | None = None
+
+    @property
+    def test_key(self) -> np.ndarray:
+        """``(N,)`` what the depth test compares: ``key``, else ``z``."""
+        return self.z if self.key is None else self.key
 
 
 @dataclass
 class Raster:
     """``layer`` ``(H, W)`` int16 batch index of the nearest triangle (``-1`` where none);
     ``z`` ``(H, W)`` float32 its depth (``inf`` where none); ``uv`` ``(H, W, 2)`` float32 its
-    interpolated attribute (0 where none)."""
+    interpolated attribute (0 where none; ``None`` where not asked for)."""
 
     layer: np.ndarray
     z: np.ndarray
-    uv: np.ndarray
+    uv: np.ndarray | None
 
 
 _programs: dict = {}  # the shader program, built once on the shared context
@@ -92,20 +103,22 @@ def gl_available() -> bool:
     return shared_context() is not None
 
 
-def rasterise(batches: list[Triangles], width: int, height: int, backend: str = "auto") -> Raster:
-    """Z-buffer every batch's triangles onto a ``height x width`` canvas (see the module docstring)."""
+def rasterise(batches: list[Triangles], width: int, height: int, backend: str = "auto",
+              with_uv: bool = True) -> Raster:
+    """Z-buffer every batch's triangles onto a ``height x width`` canvas (see the module
+    docstring); without ``with_uv`` the raster's ``uv`` is ``None`` (8 bytes a pixel not held)."""
     if backend not in RASTER_BACKENDS:
         raise ValueError(f"raster backend must be one of {RASTER_BACKENDS}, got {backend!r}")
     if backend == "gl" or (backend == "auto" and gl_available()):
         if not gl_available():
             raise Pis3rError(f"the gl rasteriser needs an OpenGL context: {unavailable_reason()}")
-        return _rasterise_gl(batches, width, height)
-    return _rasterise_numpy(batches, width, height)
+        return _rasterise_gl(batches, width, height, with_uv)
+    return _rasterise_numpy(batches, width, height, with_uv)
 
 
 def _depth_range(batches: list[Triangles]) -> tuple[float, float]:
-    """``(near, far)`` clip planes around every depth the faces use."""
-    used = [b.z[b.faces.ravel()] for b in batches if len(b.faces)]
+    """``(near, far)`` clip planes around every depth-test key the faces use."""
+    used = [b.test_key[b.faces.ravel()] for b in batches if len(b.faces)]
     if not used:
         return 1.0, 2.0
     zs = np.concatenate(used)
@@ -114,14 +127,14 @@ def _depth_range(batches: list[Triangles]) -> tuple[float, float]:
     return near * 0.99, max(far * 1.01, near * 1.02)
 
 
-def _rasterise_gl(batches: list[Triangles], width: int, height: int) -> Raster:
+def _rasterise_gl(batches: list[Triangles], width: int, height: int, with_uv: bool) -> Raster:
     with current_context() as context:  # the web server renders in worker threads
         if "program" not in _programs:
             _programs["program"] = context.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER)
-        return _render_gl(context, _programs["program"], batches, width, height)
+        return _render_gl(context, _programs["program"], batches, width, height, with_uv)
 
 
-def _render_gl(context, program, batches: list[Triangles], width: int, height: int) -> Raster:
+def _render_gl(context, program, batches: list[Triangles], width: int, height: int, with_uv: bool) -> Raster:
     import moderngl
 
     near, far = _depth_range(batches)
@@ -130,17 +143,19 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
     for index, batch in enumerate(batches):
         if not len(batch.faces):
             continue
-        data = np.concatenate([batch.xy, batch.z[:, None], batch.uv], axis=1).astype(np.float32)
+        data = np.concatenate([batch.xy, batch.z[:, None], batch.test_key[:, None], batch.uv],
+                              axis=1).astype(np.float32)
         vbo = context.buffer(np.ascontiguousarray(data).tobytes())
         ibo = context.buffer(np.ascontiguousarray(batch.faces, dtype=np.int32).tobytes())
-        vao = context.vertex_array(program, [(vbo, "2f 1f 2f", "in_xy", "in_z", "in_uv")], ibo, index_element_size=4)
+        vao = context.vertex_array(program, [(vbo, "2f 1f 1f 2f", "in_xy", "in_z", "in_key", "in_uv")], ibo,
+                                   index_element_size=4)
         arrays.append((index, vao, vbo, ibo))
     # Three arrays rather than the framebuffer's one RGBA image: the canvas's depth outlives its
     # attributes (a panorama's source pixels are 8 bytes of its 80 MP), and a view of one
     # channel would keep all four alive.
     layer = np.empty((height, width), np.int16)
     z = np.empty((height, width), np.float32)
-    uv = np.empty((height, width, 2), np.float32)
+    uv = np.empty((height, width, 2), np.float32) if with_uv else None
     max_side = min(context.info["GL_MAX_RENDERBUFFER_SIZE"], *context.info["GL_MAX_VIEWPORT_DIMS"])
     tile_w = min(width, max_side)
     tile_h = min(height, max_side, max(1, GL_TILE_PIXELS // tile_w))
@@ -166,7 +181,8 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
                 tile = read_back[:h * w * 4].reshape(h, w, 4)
                 framebuffer.read_into(tile, viewport=(0, 0, w, h), components=4, dtype="f4")
                 rows, cols = slice(y0, y0 + h), slice(x0, x0 + w)
-                uv[rows, cols] = tile[..., :2]
+                if with_uv:
+                    uv[rows, cols] = tile[..., :2]
                 z[rows, cols] = tile[..., 2]
                 # The shader writes layer + 1 as a float, exactly: the conversion needs no rounding.
                 np.subtract(tile[..., 3], 1, out=layer[rows, cols], casting="unsafe")
@@ -177,10 +193,12 @@ def _render_gl(context, program, batches: list[Triangles], width: int, height: i
     return Raster(layer=layer, z=z, uv=uv)
 
 
-def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raster:
+def _rasterise_numpy(batches: list[Triangles], width: int, height: int, with_uv: bool) -> Raster:
     zbuf = np.full(height * width, np.inf, np.float32)
+    # The depth test's keys where a batch gives its own (else the test runs on zbuf itself).
+    keys = np.full(height * width, np.inf, np.float32) if any(b.key is not None for b in batches) else zbuf
     layer = np.full(height * width, -1, np.int16)
-    uv = np.zeros((height * width, 2), np.float32)
+    uv = np.zeros((height * width, 2), np.float32) if with_uv else None
     for index, batch in enumerate(batches):
         if not len(batch.faces):
             continue
@@ -201,6 +219,7 @@ def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raste
             c = -(a * x[:, j] + b * y[:, j])
             coeffs.append((a, b, c))
         inv_z = 1.0 / batch.z[batch.faces].astype(np.float64)
+        inv_key = inv_z if batch.key is None else 1.0 / batch.key[batch.faces].astype(np.float64)
         uv_z = batch.uv[batch.faces].astype(np.float64) * inv_z[..., None]
         tris = np.flatnonzero(keep)
         counts = (nx * ny)[tris]
@@ -222,14 +241,17 @@ def _rasterise_numpy(batches: list[Triangles], width: int, height: int) -> Raste
             bary = [b[inside] for b in bary]
             w_sum = sum(bary[i] * inv_z[t, i] for i in range(3))
             z = (1.0 / w_sum).astype(np.float32)
+            # The key as OpenGL interpolates window depth: linearly in 1/key on the canvas.
+            key = z if keys is zbuf else (1.0 / sum(bary[i] * inv_key[t, i] for i in range(3))).astype(np.float32)
             flat = py * width + px
-            np.minimum.at(zbuf, flat, z)
-            won = z <= zbuf[flat]
+            np.minimum.at(keys, flat, key)
+            won = key <= keys[flat]
             flat, t, z, w_sum = flat[won], t[won], z[won], w_sum[won]
+            zbuf[flat] = z
             bary = [b[won] for b in bary]
-            for d in range(2):
+            for d in range(2 if with_uv else 0):
                 uv[flat, d] = sum(bary[i] * uv_z[t, i, d] for i in range(3)) / w_sum
             layer[flat] = index
             first = last
     return Raster(layer=layer.reshape(height, width), z=zbuf.reshape(height, width),
-                  uv=uv.reshape(height, width, 2))
+                  uv=uv.reshape(height, width, 2) if with_uv else None)
