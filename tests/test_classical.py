@@ -132,6 +132,40 @@ def test_pure_rotation_uses_the_homography_model():
         assert (view.confidence == 1).all() and view.confidence.strides == (0, 0)
 
 
+def test_photos_through_one_lens_share_the_focal_the_first_pair_found():
+    """Three photos of a turn whose EXIF focal (one lens) is 30 % off: the first pair's rotation
+    replaces the reference's, and the third photo, paired later, takes the same focal, not its
+    EXIF's (one camera, one focal: a turn's rotations otherwise drift)."""
+    from tests.analytic import rotation_y
+    from pis3r.camera import Camera, intrinsics
+
+    K = intrinsics(400, 400, 300)
+    wall = planes_scene()[:1]
+    photos = []
+    for name, angle in (("a", 0), ("b", 12), ("c", -12)):
+        image, _ = render(wall, Camera(K, rotation_y(angle), np.zeros(3), 400, 300))
+        photos.append(Photo(image, name, focal_px=520.0, focal_evidence="EXIF 35mm-equivalent"))
+    scene = ClassicalReconstructor(ReconstructOptions()).reconstruct(photos)
+    focals = [view.camera.K[0, 0] for view in scene.views]
+    assert abs(focals[0] - 400) < 12 and np.allclose(focals, focals[0])
+    assert any("does not fit this rotation" in line for line in scene.warnings)
+
+
+def test_a_partner_keeps_its_own_exif_focal_unless_it_shows_the_reference_s_lens():
+    from pis3r.reconstruct.focal import partner_focal
+
+    ref = Photo(np.zeros((300, 400, 3), np.float32), "ref", focal_px=520.0)
+    same_lens_smaller = Photo(np.zeros((150, 200, 3), np.float32), "half", focal_px=260.0)
+    other_lens = Photo(np.zeros((300, 400, 3), np.float32), "zoomed", focal_px=800.0)
+    no_exif = Photo(np.zeros((300, 400, 3), np.float32), "plain")
+    assert partner_focal(same_lens_smaller, ref, 400.0, None) == pytest.approx(200.0)
+    assert partner_focal(same_lens_smaller, ref, 520.0, None) == pytest.approx(260.0)
+    assert partner_focal(other_lens, ref, 400.0, None) == 800.0
+    assert partner_focal(no_exif, ref, 400.0, None) is None
+    assert partner_focal(same_lens_smaller, ref, 400.0, 333.0) == 333.0
+    assert partner_focal(same_lens_smaller, Photo(ref.pixels, "ref"), 400.0, None) == 260.0
+
+
 def test_a_plane_s_confidence_is_zero_above_its_horizon():
     from pis3r.camera import intrinsics
     from pis3r.reconstruct.geometry import plane_depth

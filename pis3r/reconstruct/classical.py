@@ -32,6 +32,7 @@ from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.confidence import pair_confidence, unreliable_warning
+from pis3r.reconstruct.focal import known_focal, partner_focal
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
@@ -86,7 +87,7 @@ class ClassicalReconstructor:
         cv2.setRNGSeed(0)
         features = self.features(photos[:2]) + self.features(photos[2:], MULTI_VIEW_FEATURES)
         ref = photos[0]
-        focal_ref, source = self._known_focal(ref)
+        focal_ref, source = known_focal(ref, self.options.focal)
         pairs: dict[int, PairGeometry] = {}
         registered: dict[int, View] = {}
         failures: dict[int, str] = {}
@@ -290,7 +291,7 @@ class ClassicalReconstructor:
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
         cv2.setRNGSeed(0)
-        return self.pair_geometry(*self.features([ref, other]), *self._known_focal(ref),
+        return self.pair_geometry(*self.features([ref, other]), *known_focal(ref, self.options.focal),
                                   focal_is_final=bool(self.options.focal))
 
     def features(self, photos: list[Photo], max_features: int | None = None) -> list[PhotoFeatures]:
@@ -338,7 +339,8 @@ class ClassicalReconstructor:
         self._reject_identical(found.matches, ref.photo, other.photo)
         # APAP's views have the homography's cameras and plane.
         model = "homography" if self.options.model == "apap" else self.options.model
-        return estimate_pair(ref, other, found, focal_ref, self._known_focal(other.photo)[0], source,
+        return estimate_pair(ref, other, found, focal_ref,
+                             partner_focal(other.photo, ref.photo, focal_ref, self.options.focal), source,
                              focal_is_final, model, self.options.focal_rule, self._memoised)
 
     def _placed(self, view: View, pair: PairGeometry, photo: Photo, onto_photo: Photo, onto: int) -> View:
@@ -379,14 +381,6 @@ class ClassicalReconstructor:
         if ratio is None:
             raise ReconstructionError(f"{other.name}: its scale cannot be tied to the other views")
         return None, view_other.rescaled(ratio)
-
-    # -- focal --------------------------------------------------------------------------
-    def _known_focal(self, photo: Photo) -> tuple[float | None, str]:
-        if self.options.focal:
-            return float(self.options.focal), "flag"
-        if photo.focal_px:
-            return float(photo.focal_px), f"EXIF ({photo.focal_evidence})"
-        return None, ""
 
     @staticmethod
     def _reject_identical(matches: Matches, a: Photo, b: Photo) -> None:

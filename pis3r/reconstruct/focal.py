@@ -16,12 +16,16 @@ import numpy as np
 
 from pis3r.camera import focal_scaled, intrinsics, pixel_rays
 from pis3r.features import Matches
+from pis3r.io import Photo
 from pis3r.reconstruct.geometry import pixel_scale
 from pis3r.reconstruct.robust_lsq import robust_least_squares
 
 # Prior focal when neither the user, EXIF nor the two views give one: 1.2 x the longest
 # side (about 45 deg horizontal field of view), COLMAP's prior.
 FALLBACK_FOCAL_FACTOR = 1.2
+# Two photos whose EXIF focals per pixel of their longest side agree this closely came through
+# one lens at one zoom.
+SAME_LENS = 0.01
 # Focal / longest side of ordinary lenses (about 19 to 90 deg across the longest side):
 # a self-calibrated focal outside is reported, since the cameras then are likely wrong.
 PLAUSIBLE_FOCAL = (0.5, 3.0)
@@ -146,6 +150,32 @@ class FocalHypothesis:
     def intrinsics(self, focal_a: float, size_a: tuple[int, int], size_b: tuple[int, int]):
         """``(K_a, K_b)`` for the reference focal ``focal_a``."""
         return intrinsics(focal_a, *size_a), intrinsics(self.ratio * focal_a, *size_b)
+
+
+def known_focal(photo: Photo, flag: float | None) -> tuple[float | None, str]:
+    """``(focal, source)`` of ``photo`` before any matching: ``--focal``'s (``flag``), else its
+    EXIF's, else ``(None, "")``."""
+    if flag:
+        return float(flag), "flag"
+    if photo.focal_px:
+        return float(photo.focal_px), f"EXIF ({photo.focal_evidence})"
+    return None, ""
+
+
+def partner_focal(photo: Photo, ref: Photo, ref_focal: float | None, flag: float | None) -> float | None:
+    """The known focal of ``photo`` paired with ``ref``, whose focal is ``ref_focal``: its own
+    (:func:`known_focal`), unless its EXIF shows the lens of ``ref``'s EXIF and ``ref_focal`` is
+    not that EXIF's (a first pair's rotation replaced it): then ``ref_focal``, per pixel of the
+    longest side. One camera's photos keep one focal: around a turn of 17 photos whose
+    reference's EXIF focal (2992 px) its first pair replaced by 2641, the others kept 2992 and
+    the chained rotations missed the closing photo by 73 deg (35 with one focal)."""
+    focal, _ = known_focal(photo, flag)
+    if flag or focal is None or not ref_focal or not ref.focal_px:
+        return focal
+    per_pixel, ref_per_pixel = focal / max(photo.width, photo.height), ref.focal_px / max(ref.width, ref.height)
+    if abs(per_pixel / ref_per_pixel - 1) > SAME_LENS:
+        return focal
+    return focal * ref_focal / ref.focal_px
 
 
 def focal_hypotheses(size_a: tuple[int, int], size_b: tuple[int, int], focal_a: float | None,
