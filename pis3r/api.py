@@ -29,6 +29,7 @@ from pis3r.options import StitchOptions
 from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer, WarningLog
 from pis3r.reconstruct.base import create_backend, resolve_backend_name
+from pis3r.reconstruct.loop import closed_turn, looks_like_a_turn
 from pis3r.reconstruct.options import RECONSTRUCT_MODELS, ReconstructOptions
 from pis3r.refine import resolve_refine
 from pis3r.result import StitchResult
@@ -166,6 +167,11 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
         # Reconstructed during the band test already when the backend's own 3-D explanation won.
         scene = (choice.scene if choice.scene is not None
                  else create_backend(backend, backend_options, memo).reconstruct(ordered))
+    if backend == "classical" and looks_like_a_turn(scene):
+        with timer.stage("close the turn"):
+            scene, line = closed_turn(scene, ordered, order, backend_options, memo)
+        if line:
+            timer.say(line)
     scene = scene.in_input_order(order)
     if len(photos) > 2:
         for line in placement_lines(scene, order[0], len(photos)):
