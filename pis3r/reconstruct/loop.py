@@ -93,17 +93,22 @@ def close_the_turn(scene: Scene, names: list[str], first: int, last: int, rebuil
         return scene, ""
     if at_found <= CLOSED_DEG:
         return scene, ""
-    tried: dict[float, tuple[float, Scene | None]] = {}
+    tried: dict[float, float] = {}
+    # Only the best scene so far is kept: each holds every photo's depth (a turn's: gigabytes).
+    kept: list = [math.inf, None]
 
     def gap(log_focal: float) -> float:
         focal = math.exp(log_focal)
         if focal not in tried:
             try:
                 built = rebuild(focal)
-                tried[focal] = (_closing_gap(built, first, last, pair_rotation(focal)), built)
+                tried[focal] = _closing_gap(built, first, last, pair_rotation(focal))
             except Pis3rError:
-                tried[focal] = (math.inf, None)
-        return tried[focal][0]
+                tried[focal], built = math.inf, None
+            if tried[focal] < kept[0]:
+                kept[:] = [tried[focal], built]
+            del built
+        return tried[focal]
 
     # Golden sections on the log focal: the gap falls toward the closing focal from either side.
     ratio = (math.sqrt(5) - 1) / 2
@@ -116,11 +121,11 @@ def close_the_turn(scene: Scene, names: list[str], first: int, last: int, rebuil
         else:
             a, c = c, d
             d = a + ratio * (b - a)
-    best = min(tried, key=lambda focal: tried[focal][0])
-    closed, built = tried[best]
+    best = min(tried, key=tried.get)
+    closed, built = kept
     if built is None or closed > CLOSED_DEG:
         return scene, ""
-    closing = [focal for focal, (value, _) in tried.items() if value <= CLOSED_DEG]
+    closing = [focal for focal, value in tried.items() if value <= CLOSED_DEG]
     line = (f"the turn closes at a focal of {best:.0f} px: {names[first]} and {names[last]} agree within "
             f"{closed:.1f} deg ({at_found:.0f} deg apart at the {found:.0f} px the first pair gave)")
     return replace(built, focal_source=f"closes the turn ({names[first]} to {names[last]})",
