@@ -92,22 +92,11 @@ def test_a_rendered_turn_built_at_a_wrong_focal_is_rebuilt_at_the_one_that_close
     """Ten photos turning a full circle inside a room of four textured walls, chained by the
     classical backend at a focal 8 % long: the search, through the backend's own pairs, brings
     the focal back within 2 % and the first and last cameras together."""
-    from skimage import data
-
     from pis3r.io import Photo
     from pis3r.reconstruct.classical import ClassicalReconstructor
-    from tests.analytic import Plane, _texture, render, rotation_y
+    from tests.analytic import rotation_y
 
-    names = ["astronaut", "coffee", "chelsea", "rocket"]
-    assert all(hasattr(data, name) for name in names)
-    room = [Plane(origin, u, np.array([0.0, 6.0, 0.0]), _texture(name)) for name, origin, u in zip(
-        names, [np.array([-5.0, -3.0, 5.0]), np.array([5.0, -3.0, 5.0]), np.array([5.0, -3.0, -5.0]),
-                np.array([-5.0, -3.0, -5.0])],
-        [np.array([10.0, 0.0, 0.0]), np.array([0.0, 0.0, -10.0]), np.array([-10.0, 0.0, 0.0]),
-         np.array([0.0, 0.0, 10.0])])]
-    K = intrinsics(300.0, 400, 300)
-    photos = [Photo(render(room, Camera(K, rotation_y(36.0 * k), np.zeros(3), 400, 300))[0], f"{k:02d}.png")
-              for k in range(10)]
+    photos = [Photo(image.astype(np.float32) / 255, f"{k:02d}.png") for k, image in enumerate(_room_turn(10))]
     memo = {}
     scene = ClassicalReconstructor(ReconstructOptions(focal=324.0), memo).reconstruct(photos)
     assert looks_like_a_turn(scene)
@@ -116,4 +105,35 @@ def test_a_rendered_turn_built_at_a_wrong_focal_is_rebuilt_at_the_one_that_close
     assert line.startswith("the turn closes at a focal of")
     # Every camera where it was photographed, the ones opposite the reference included.
     for view, k in zip(closed.views, closed.indices):
+        assert np.degrees(np.arccos(np.clip((np.trace(view.camera.R @ rotation_y(36.0 * k).T) - 1) / 2, -1, 1))) < 2
+
+
+def _room_turn(count: int, focal: float = 300.0) -> list[np.ndarray]:
+    """``count`` 400x300 photos from the middle of a room of four textured walls, turning a full
+    circle (uint8 RGB)."""
+    from tests.analytic import Plane, _texture, render, rotation_y
+
+    names = ["astronaut", "coffee", "chelsea", "rocket"]
+    room = [Plane(origin, u, np.array([0.0, 6.0, 0.0]), _texture(name)) for name, origin, u in zip(
+        names, [np.array([-5.0, -3.0, 5.0]), np.array([5.0, -3.0, 5.0]), np.array([5.0, -3.0, -5.0]),
+                np.array([-5.0, -3.0, -5.0])],
+        [np.array([10.0, 0.0, 0.0]), np.array([0.0, 0.0, -10.0]), np.array([-10.0, 0.0, 0.0]),
+         np.array([0.0, 0.0, 10.0])])]
+    K = intrinsics(focal, 400, 300)
+    return [(render(room, Camera(K, rotation_y(360.0 * k / count), np.zeros(3), 400, 300))[0] * 255).astype(np.uint8)
+            for k in range(count)]
+
+
+@pytest.mark.slow
+def test_a_stitched_turn_is_a_closed_panorama(capsys):
+    """Ten photos around a room, stitched with the defaults: the turn is tested for closing, the
+    canvas is a full turn with every photo on it, and every camera is where it was taken."""
+    import pis3r
+    from tests.analytic import rotation_y
+
+    result = pis3r.stitch(_room_turn(10), projection="auto", quiet=False)
+    assert "[pis3r] close the turn ..." in capsys.readouterr().err
+    assert result.camera.full_turn and result.report["canvas"]["projection"] != "perspective"
+    assert sorted(result.scene.indices) == list(range(10))
+    for view, k in zip(result.scene.views, result.scene.indices):
         assert np.degrees(np.arccos(np.clip((np.trace(view.camera.R @ rotation_y(36.0 * k).T) - 1) / 2, -1, 1))) < 2
