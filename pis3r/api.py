@@ -230,7 +230,7 @@ def composite(scene: Scene, ref_index: int, options: StitchOptions, timer: Stage
             canvas = render_to_canvas(scene, position, options.max_canvas_scale)
         else:
             canvas = render_to_panorama(scene, position, CAMERA_MODELS[projection],
-                                        feather=options.blend != "none")
+                                        feather=options.blend != "none", two_bands=options.blend == "multiband")
     if options.projection == "auto":
         sub.say(f"projection: {projection} (auto)")
     if isinstance(canvas.camera, PanoramaCamera):

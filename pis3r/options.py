@@ -95,7 +95,7 @@ class StitchOptions:
         DEFAULT_HOLE_RADIUS, "Radius (px) of the closing disk: gaps up to about twice this are inpainted.",
         low=1, high=64, kind=int)
     blend: str = _option(DEFAULT_BLEND, "Blend the other views toward the reference's colours across its border; "
-                         "on a panorama, any but none feathers the seams between the views.",
+                         "on a panorama also the seams between the views (multiband: in two bands).",
                          choices=BLEND_METHODS)
     blend_into_reference: bool = _option(
         False, "Let the blend enter the reference (by default its pixels stay verbatim).", kind=bool)

@@ -169,7 +169,8 @@ def test_the_seams_run_midway_between_views_and_are_feathered_across():
     np.testing.assert_allclose(soft[between & (longitude > 75)], 0.7, atol=0.01)
 
 
-@pytest.mark.parametrize("blend, feather", [("none", False), ("feather", True), ("multiband", True)])
+@pytest.mark.parametrize("blend, feather", [("none", (False, False)), ("feather", (True, False)),
+                                            ("multiband", (True, True))])
 def test_blend_none_leaves_a_panorama_s_seams_as_the_z_buffer_drew_them(blend, feather, monkeypatch):
     from pis3r import api
     from pis3r.progress import StageTimer
@@ -177,13 +178,46 @@ def test_blend_none_leaves_a_panorama_s_seams_as_the_z_buffer_drew_them(blend, f
     asked = []
 
     def render(*args, **kwargs):
-        asked.append(kwargs["feather"])
+        asked.append((kwargs["feather"], kwargs["two_bands"]))
         return render_to_panorama(*args, **kwargs)
 
     monkeypatch.setattr(api, "render_to_panorama", render)
     scene, _ = ring()
     api.composite(scene, 0, pis3r.StitchOptions(projection="spherical", blend=blend), StageTimer(quiet=True))
     assert asked == [feather]
+
+
+def test_in_two_bands_a_misregistered_neighbour_leaves_no_double_edge():
+    """Two views of stripes 8 px apart, the second 2 px off: feathered, the band mixes the two and
+    half its pixels are grey, between a stripe and a gap; in two bands each view's stripes stay
+    its own up to the seam, and only their coarse colours (all grey) are mixed."""
+    from types import SimpleNamespace
+
+    from pis3r.stitch.exposure import NEUTRAL
+    from pis3r.stitch.raster import Raster
+    from pis3r.stitch.seams import feather_views
+
+    stripes = np.repeat(((np.arange(W) // 4) % 2).astype(np.float32)[None, :, None], H, 0).repeat(3, 2)
+    faces = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+
+    def square(x0, x1, shift):
+        xy = np.array([[x0, 0], [x1, 0], [x0, 60], [x1, 60]], np.float32)
+        return SimpleNamespace(view=0, xy=xy, z=np.ones(4, np.float32), uv=xy + [shift + 20, 20], faces=faces)
+
+    layer = np.full((60, 100), -1, np.int16)
+    layer[:, :48], layer[:, 48:] = 0, 1
+    canvas = Raster(layer, np.ones((60, 100), np.float32), None)
+    scene = Scene([View(stripes, Camera(intrinsics(F, W, H), np.eye(3), np.zeros(3), W, H),
+                        np.ones((H, W), np.float32), np.ones((H, W), np.float32))])
+    surfaces = [square(0, 70, 0.0), square(28, 100, 2.0)]
+
+    def grey(two_bands):
+        image, _ = feather_views(scene, surfaces, canvas, [NEUTRAL, NEUTRAL], 24.0, False, two_bands=two_bands)
+        near_seam = image[20:40, 44:52, 0]
+        return ((near_seam > 0.15) & (near_seam < 0.85)).mean()
+
+    assert grey(False) > 0.3
+    assert grey(True) < 0.05
 
 
 def test_around_the_reference_the_views_fade_toward_its_colours():

@@ -68,12 +68,14 @@ SEAM_CENTRALITY = 0.05
 
 def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirectangular", match_exposure: bool = True,
                        raster_backend: str = "auto", max_stretch: float = MAX_STRETCH,
-                       max_pixels: int = PANORAMA_MAX_PIXELS, feather: bool = True) -> Canvas:
+                       max_pixels: int = PANORAMA_MAX_PIXELS, feather: bool = True,
+                       two_bands: bool = False) -> Canvas:
     """Render every view's surface of ``scene`` onto a ``model`` (``cylindrical`` or
     ``equirectangular``) canvas around camera ``ref_index`` (module docstring), with the
     reference's rays sampled from its photo. ``max_pixels`` caps the canvas's size;
-    ``feather``: the seams between views are feathered (:mod:`pis3r.stitch.seams`), else
-    each pixel is the view the z-buffer chose."""
+    ``feather``: the seams between views are feathered (:mod:`pis3r.stitch.seams`; with
+    ``two_bands`` their coarse colours only, each view's detail kept to its seam), else each
+    pixel is the view the z-buffer chose."""
     # Local homographies warp a view onto the reference's image plane, which a turn leaves
     # behind: on a panorama every view is placed by its camera and depth (a rotation's at 1).
     scene = replace(scene, views=tuple(replace(view, warp=None) for view in scene.views))
@@ -110,7 +112,7 @@ def render_to_panorama(scene: Scene, ref_index: int = 0, model: str = "equirecta
     release_free_memory()
     if feather:
         band = SEAM_BAND_FRACTION * min(ref.width, ref.height) * camera.scale / float(ref.K[0, 0])
-        image, bare = feather_views(scene, surfaces, raster, exposures, band, by_distance, raster_backend)
+        image, bare = feather_views(scene, surfaces, raster, exposures, band, by_distance, raster_backend, two_bands)
         raster.layer[bare] = -1
         # The reference is pasted verbatim: around it the views are toned toward its colours.
         tone_toward_reference(image, box, inside, ref_colours, raster.layer[box] >= 0,
