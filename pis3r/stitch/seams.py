@@ -13,7 +13,9 @@ as a step. Here each view's colours fade across its seams over ``band`` canvas p
   around that region; where its scene is 3-D it counts only where its surface is within
   ``VISIBLE_SLACK`` of the distance the canvas shows (a surface hidden behind another view's
   is not blended in), while a view placed as a plane or a rotation counts wherever it reaches;
-- the colours are summed with their weights and divided by the weights' sum.
+- the colours are summed with their weights and divided by the weights' sum;
+- in two bands (``--blend multiband``) only the colours blurred over a quarter of the band are
+  feathered so: each view's detail stays its own up to its seam.
 
 The reference is not among the views blended: its footprint is pasted over the result, and
 around it the views are brought toward its colours (:func:`tone_toward_reference`), as the
