@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import replace
+from functools import cache
 
 import numpy as np
 
@@ -43,9 +44,9 @@ MIN_TURN_DEG = 300.0
 def closed_turn(scene: Scene, photos: list[Photo], order: list[int], options: ReconstructOptions,
                 memo: dict) -> tuple[Scene, str]:
     """``(scene, line)``: the classical backend's ``scene`` of ``photos`` (built with ``options``
-    and ``memo``; ``photos[k]`` is input ``order[k]``, the reference first) at the focal that
-    closes the turn the photos make, and the line that says so; ``scene`` itself and ``""``
-    where it is no turn, it closes already or no focal closes it.
+    and ``memo``; ``photos[k]`` is input ``order[k]``, the reference first), a turn
+    (:func:`looks_like_a_turn`: the caller tells), at the focal that closes it, and the line
+    that says so; ``scene`` itself and ``""`` where it closes already or no focal closes it.
 
     Input order is taken as shooting order: the chains from the reference meet across the turn,
     between two photos taken one after the other (cyclically). Of those pairs, the one whose
@@ -54,10 +55,12 @@ def closed_turn(scene: Scene, photos: list[Photo], order: list[int], options: Re
     # never loads this one.
     from pis3r.reconstruct.classical import MULTI_VIEW_FEATURES, ClassicalReconstructor
 
-    if options.focal or scene.focal is None or not looks_like_a_turn(scene):
+    if options.focal or scene.focal is None:
         return scene, ""
     count = len(order)
 
+    # The closing pair's fit at the focal found serves both the choice of the pair and the search.
+    @cache
     def pair_rotation(focal: float, first: int, last: int) -> np.ndarray:
         # Matched as the backend matches a set's later pairs (their SIFT features memoised).
         backend = ClassicalReconstructor(replace(options, focal=focal), memo)

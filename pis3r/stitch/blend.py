@@ -58,15 +58,22 @@ def local_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray
     A normalised Gaussian convolution over ``under_valid`` ``(h, w)`` pixels, so holes in
     the overlap do not bias it; ``1`` where the overlap gives no support.
     """
-    weight = under_valid.astype(np.float32)
-    h, w = weight.shape
+    h, w = under_valid.shape
     # The gain is smooth: measure it on a grid a few pixels per sigma apart, then upsample.
     factor = max(1, int(sigma // 4))
-    small = (max(1, w // factor), max(1, h // factor))
+    gain = coarse_gain(reference, under, under_valid, (max(1, w // factor), max(1, h // factor)), sigma / factor)
+    return cv2.resize(gain, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def coarse_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray, size: tuple[int, int],
+                sigma: float) -> np.ndarray:
+    """:func:`local_gain` measured on copies resized to ``size`` ``(w, h)``, ``sigma`` in their
+    pixels: ``(h, w, 3)`` float32 at that size, clipped to ``GAIN_RANGE``."""
+    weight = under_valid.astype(np.float32)
 
     def smooth(a: np.ndarray) -> np.ndarray:
-        shrunk = cv2.resize(a, small, interpolation=cv2.INTER_AREA)
-        return cv2.GaussianBlur(shrunk, (0, 0), sigma / factor, borderType=cv2.BORDER_REFLECT)
+        shrunk = cv2.resize(a, size, interpolation=cv2.INTER_AREA)
+        return cv2.GaussianBlur(shrunk, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
 
     # The weight on three channels, multiplied in by OpenCV: numpy's broadcast of an (h, w, 1)
     # factor is several times slower on photos of many megapixels. The three smoothed planes
@@ -79,7 +86,7 @@ def local_gain(reference: np.ndarray, under: np.ndarray, under_valid: np.ndarray
         numerator, denominator = numerator.result(), denominator.result()
     with np.errstate(divide="ignore", invalid="ignore"):
         gain = np.where((support > 1e-3) & (denominator > 1e-3), numerator / denominator, 1.0)
-    return cv2.resize(np.clip(gain, *GAIN_RANGE).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    return np.clip(gain, *GAIN_RANGE).astype(np.float32)
 
 
 def laplacian_blend(a: np.ndarray, b: np.ndarray, weight: np.ndarray, levels: int) -> np.ndarray:

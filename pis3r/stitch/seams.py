@@ -32,7 +32,8 @@ import numpy as np
 from pis3r.io import CONVERT_ROWS
 from pis3r.memory import release_free_memory
 from pis3r.scene import Scene
-from pis3r.stitch.exposure import GAIN_RANGE, Exposure
+from pis3r.stitch.blend import coarse_gain
+from pis3r.stitch.exposure import Exposure
 from pis3r.stitch.raster import Raster, Triangles, rasterise
 from pis3r.stitch.render import COLOUR_INTERPOLATION
 
@@ -154,8 +155,7 @@ def _seam_weight(won: np.ndarray, band: float) -> np.ndarray:
     ``SEAM_BAND_SAMPLES`` pixels across the band and resized back: the ramp is smooth, and a
     region's distance transforms at full size cost as much as its colours."""
     height, width = won.shape
-    factor = max(1.0, band / SEAM_BAND_SAMPLES)
-    size = (max(1, round(width / factor)), max(1, round(height / factor)))
+    size, _ = _coarse_copy(won.shape, band)
     mask = (cv2.resize(won.astype(np.float32), size, interpolation=cv2.INTER_AREA) >= 0.5).astype(np.uint8)
     inside = cv2.distanceTransform(mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     outside = cv2.distanceTransform(1 - mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
@@ -164,6 +164,14 @@ def _seam_weight(won: np.ndarray, band: float) -> np.ndarray:
     signed = np.where(mask > 0, inside - 0.5, 0.5 - outside) * (width / size[0])
     ramp = np.clip(0.5 + signed / band, 0.0, 1.0).astype(np.float32)
     return cv2.resize(ramp, (width, height), interpolation=cv2.INTER_LINEAR)
+
+
+def _coarse_copy(shape: tuple[int, int], band: float) -> tuple[tuple[int, int], float]:
+    """``((w, h), factor)``: the size of a copy of an ``(h, w)`` region about
+    ``SEAM_BAND_SAMPLES`` pixels across ``band``, where the smooth fields of seams are measured,
+    and how many times smaller it is."""
+    factor = max(1.0, band / SEAM_BAND_SAMPLES)
+    return (max(1, round(shape[1] / factor)), max(1, round(shape[0] / factor))), factor
 
 
 def tone_toward_reference(image: np.ndarray, box: tuple[slice, slice], inside: np.ndarray, reference: np.ndarray,
@@ -183,22 +191,13 @@ def tone_toward_reference(image: np.ndarray, box: tuple[slice, slice], inside: n
     placed = (slice(box[0].start - y0, box[0].stop - y0), slice(box[1].start - x0, box[1].stop - x0))
     footprint[placed] = inside
     # The gain is smooth: everything is measured on a copy about SEAM_BAND_SAMPLES across the band.
-    factor = max(1.0, band / SEAM_BAND_SAMPLES)
-    size = (max(1, round((x1 - x0) / factor)), max(1, round((y1 - y0) / factor)))
-    both = np.zeros_like(footprint, np.float32)
+    size, factor = _coarse_copy(footprint.shape, band)
+    sigma = band / 2 / factor
+    both = np.zeros_like(footprint)
     both[placed] = inside & under_valid
     reference_in = np.zeros((y1 - y0, x1 - x0, 3), np.float32)
-    reference_in[placed] = reference * both[placed][..., None]
-    sigma = band / 2 / factor
-
-    def smooth(a: np.ndarray) -> np.ndarray:
-        return cv2.GaussianBlur(cv2.resize(a, size, interpolation=cv2.INTER_AREA), (0, 0), sigma)
-
-    support = smooth(both)
-    numerator, denominator = smooth(reference_in), smooth(image[grown] * both[..., None])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gain = np.where((support[..., None] > 1e-3) & (denominator > 1e-3), numerator / denominator, 1.0)
-    gain = np.clip(gain, *GAIN_RANGE).astype(np.float32)
+    reference_in[placed] = reference
+    gain = coarse_gain(reference_in, image[grown], both, size, sigma)
     # Outward, each pixel takes the gain near the footprint's border: a wide normalised blur of
     # the footprint's gains.
     small_inside = cv2.resize(footprint.astype(np.float32), size, interpolation=cv2.INTER_AREA)
