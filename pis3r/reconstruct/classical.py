@@ -33,6 +33,7 @@ from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.confidence import pair_confidence, unreliable_warning
 from pis3r.reconstruct.focal import known_focal, partner_focal
+from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
@@ -283,10 +284,12 @@ class ClassicalReconstructor:
 
     def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures, detector: str | None = None,
                             strongest: int | None = None) -> ConsistentMatches:
-        detector = detector or self.options.detector
-        matcher = self.options.matcher
+        detector, matcher = detector or self.options.detector, self.options.matcher
         return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher),
-                              lambda: consistent_matches(ref, other, detector, strongest, matcher))
+                              lambda: second_opinion(ref, other, consistent_matches(ref, other, detector, strongest,
+                                                                                    matcher), detector, self.options,
+                                                     lambda: self._consistent_matches(ref, other, "ALIKED"),
+                                                     self._memoised))
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""

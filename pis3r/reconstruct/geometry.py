@@ -223,11 +223,15 @@ def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
     return np.array([[1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy)], [0, 1 / fy, -cy / fy], [0, 0, 1]])
 
 
+def epipolar_distances(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
+    """``(N,)`` signed Sampson distances (px) of matches under the pose ``x_b = R x_a + t``."""
+    F = _fundamental(R, t / max(np.linalg.norm(t), 1e-12), K_a, K_b)
+    return sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS)
+
+
 def epipolar_cost(matches: Matches, R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> float:
     """The robust Sampson cost (as :func:`refine_pose`'s) of matches under the pose ``R``, ``t``."""
-    scale = pixel_scale(*K_a[:2, 2] * 2)
-    F = _fundamental(R, t / max(np.linalg.norm(t), 1e-12), K_a, K_b)
-    return cauchy_cost(sampson_distance(F, matches.pts_a, matches.pts_b, SAMPSON_EPS) / scale)
+    return cauchy_cost(epipolar_distances(matches, R, t, K_a, K_b) / pixel_scale(*K_a[:2, 2] * 2))
 
 
 def cauchy_cost(r: np.ndarray) -> float:

@@ -4,9 +4,10 @@ it, the focal and the relative pose exported for it.
 1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix. With fewer than ``FEW_INLIERS``
    epipolar inliers (wide baselines foreshorten surfaces beyond what SIFT matches), SIFT's,
    ASIFT's and XFeat + LighterGlue's matches (:mod:`pis3r.learned_features`) are pooled
-   (matcher ``auto``), or ASIFT's replace SIFT's where more agree (matcher ``sift``). ASIFT and
-   XFeat detect on copies at most 640 px long: their matches are moved to where their patches
-   correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
+   (matcher ``auto``; :mod:`pis3r.reconstruct.hypotheses` then weighs them against ALIKED's
+   where their camera is unreliable), or ASIFT's replace SIFT's where more agree (matcher
+   ``sift``). ASIFT and XFeat detect on copies at most 640 px long: their matches are moved to
+   where their patches correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
 3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
