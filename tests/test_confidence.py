@@ -2,6 +2,7 @@
 measured from the pair itself, and a camera that cannot be trusted is said to be (issue 40)."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,6 +21,9 @@ def test_a_well_supported_pose_is_reliable_and_stable_under_resampling():
     confidence = pair_confidence(pair)
     assert confidence.reliable and confidence.resampled_deg < 0.5 and confidence.inliers == len(pair.inliers)
     assert pair.focal_interval.rotation_spread_deg <= confidence.focal_deg < 1.0
+    # The same pose, had another matcher's pose 30 deg away explained the matches about as well.
+    doubted = pair_confidence(replace(pair, info={**pair.info, "rivals_apart_deg": 30.0}))
+    assert doubted.rivals_deg == 30.0 and not doubted.reliable
 
 
 def test_few_or_scattered_matches_make_the_pose_unreliable():
@@ -54,7 +58,14 @@ def test_a_focal_the_photos_leave_free_makes_the_camera_unreliable():
     assert line.startswith("the camera of tgt.jpg is unreliable: its rotation may be 12 deg or more off")
     assert "the focal lengths the photos allow move it by 12 deg" in line and "--focal" in line and "\n" not in line
     assert confidence.to_dict() == {"rotation_uncertainty_deg": 12.0, "resampled_deg": 0.3, "focal_deg": 12.0,
-                                    "inliers": 400, "reliable": False}
+                                    "rivals_deg": 0.0, "inliers": 400, "reliable": False}
+
+
+def test_two_matchers_poses_the_matches_cannot_tell_apart_make_the_camera_unreliable():
+    confidence = PoseConfidence(resampled_deg=1.5, focal_deg=0.0, inliers=400, rivals_deg=57.0)
+    assert not confidence.reliable and confidence.uncertainty_deg == 57.0
+    assert "two matchers' poses 57 deg apart explain the matches about as well" in unreliable_warning("b", confidence)
+    assert PoseConfidence(resampled_deg=1.5, focal_deg=0.0, inliers=400, rivals_deg=3.0).reliable
 
 
 def test_the_stitch_reports_each_view_s_pose_confidence(tmp_path):
@@ -65,7 +76,8 @@ def test_the_stitch_reports_each_view_s_pose_confidence(tmp_path):
     result.save(tmp_path)
     inputs = json.loads((tmp_path / "camera.json").read_text())["inputs"]
     assert inputs[0]["pose_confidence"] is None and inputs[1]["pose_confidence"] == {
-        key: entry[key] for key in ("rotation_uncertainty_deg", "resampled_deg", "focal_deg", "inliers", "reliable")}
+        key: entry[key] for key in ("rotation_uncertainty_deg", "resampled_deg", "focal_deg", "rivals_deg", "inliers",
+                                    "reliable")}
     assert not any("unreliable" in line for line in result.report["warnings"])
 
 

@@ -17,14 +17,21 @@ degrees of rotation, from two independent sources:
   same estimator at the interval's two ends, whichever moves it more (a plane's prior focal is
   held without probing, yet its decomposition turns with the focal).
 
-The camera is unreliable when either exceeds ``UNRELIABLE_ROTATION_DEG`` or fewer than
+- ``rivals_deg``: where SIFT's matches were too few and another matcher's were weighed against
+  them (:mod:`pis3r.reconstruct.hypotheses`) without either pose explaining clearly more of
+  both, how far apart the two poses' rotations are: independent matchers that settle on
+  different geometries leave the camera in doubt, however steady each one's own matches hold
+  it (a dark turntable pair: the pool 65 deg off and steady to 1.5 deg under resampling,
+  ALIKED's 8 deg off, their scores within 5 %).
+
+The camera is unreliable when any exceeds ``UNRELIABLE_ROTATION_DEG`` or fewer than
 ``FEW_INLIERS`` matches support it; the stitch then says so in one warning
 (:func:`unreliable_warning`) and ``report.json`` / ``camera.json`` carry the numbers.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -48,16 +55,18 @@ RESAMPLE_SEED = 0
 class PoseConfidence:
     """How sure one view's relative pose is: ``resampled_deg`` (its rotation's spread over
     resampled matches), ``focal_deg`` (its spread across the focal's interval), ``inliers``
-    (the epipolar inliers it rests on)."""
+    (the epipolar inliers it rests on), ``rivals_deg`` (how far apart two matchers' poses are
+    that the matches could not tell apart)."""
 
     resampled_deg: float
     focal_deg: float
     inliers: int
+    rivals_deg: float = 0.0
 
     @property
     def uncertainty_deg(self) -> float:
-        """The larger of the two spreads: how far off the rotation may be."""
-        return max(self.resampled_deg, self.focal_deg)
+        """The largest of the spreads: how far off the rotation may be."""
+        return max(self.resampled_deg, self.focal_deg, self.rivals_deg)
 
     @property
     def reliable(self) -> bool:
@@ -72,12 +81,14 @@ class PoseConfidence:
             reasons.append(f"resampling its matches moves it by {self.resampled_deg:.0f} deg")
         if self.focal_deg > UNRELIABLE_ROTATION_DEG:
             reasons.append(f"the focal lengths the photos allow move it by {self.focal_deg:.0f} deg")
+        if self.rivals_deg > UNRELIABLE_ROTATION_DEG:
+            reasons.append(f"two matchers' poses {self.rivals_deg:.0f} deg apart explain the matches about as well")
         return reasons
 
     def to_dict(self) -> dict:
         return {"rotation_uncertainty_deg": round(self.uncertainty_deg, 3),
                 "resampled_deg": round(self.resampled_deg, 3), "focal_deg": round(self.focal_deg, 3),
-                "inliers": self.inliers, "reliable": self.reliable}
+                "rivals_deg": round(self.rivals_deg, 3), "inliers": self.inliers, "reliable": self.reliable}
 
 
 def pair_confidence(pair: PairGeometry) -> PoseConfidence:
@@ -93,8 +104,8 @@ def pair_confidence(pair: PairGeometry) -> PoseConfidence:
                 for end in (interval.low, interval.high)]
         focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
                                                           for R in ends])
-    return pose_confidence(pair.inliers, pair.R, pair.plane, pair.pose_estimator, pair.K_a, pair.K_b, size_a,
-                           focal_deg)
+    return replace(pose_confidence(pair.inliers, pair.R, pair.plane, pair.pose_estimator, pair.K_a, pair.K_b,
+                                   size_a, focal_deg), rivals_deg=pair.info.get("rivals_apart_deg", 0.0))
 
 
 def pose_confidence(inliers: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,

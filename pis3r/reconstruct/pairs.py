@@ -94,11 +94,14 @@ class PhotoFeatures:
 class ConsistentMatches:
     """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
     fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat``, ``ALIKED`` or
-    ``pooled`` (SIFT's, ASIFT's and XFeat's together)."""
+    ``pooled`` (SIFT's, ASIFT's and XFeat's together). ``rivals_apart_deg``: where another
+    matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
+    neither pose explained clearly more of both, the angle between their rotations; else 0."""
 
     matches: Matches
     inliers: np.ndarray
     detector: str
+    rivals_apart_deg: float = 0.0
 
 
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
@@ -244,7 +247,8 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
             warnings = [*warnings, focal_warning(float(K_a[0, 0]), source, interval, "too few matches agree")]
         return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
                             tuple(warnings),
-                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval,
+                            {"features": found.detector, "num_inliers": int(f_inl.sum()),
+                             "rivals_apart_deg": found.rivals_apart_deg, **details}, interval,
                             estimator or ("essential" if model == "3d" else "homography"))
 
     # A plane seen from two places is explained by one homography too, whatever its
