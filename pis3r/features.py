@@ -74,6 +74,11 @@ class Matches:
     def subset(self, keep: np.ndarray) -> "Matches":
         return Matches(self.pts_a[keep], self.pts_b[keep])
 
+    @staticmethod
+    def joined(parts: list["Matches"]) -> "Matches":
+        """The matches of every one of ``parts``, in their order."""
+        return Matches(np.vstack([part.pts_a for part in parts]), np.vstack([part.pts_b for part in parts]))
+
 
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` RGB to ``(H, W)`` uint8 luminance: float in [0, 1] is rounded half up,

@@ -22,7 +22,7 @@ def test_a_well_supported_pose_is_reliable_and_stable_under_resampling():
     assert confidence.reliable and confidence.resampled_deg < 0.5 and confidence.inliers == len(pair.inliers)
     assert pair.focal_interval.rotation_spread_deg <= confidence.focal_deg < 1.0
     # The same pose, had another matcher's pose 30 deg away explained the matches about as well.
-    doubted = pair_confidence(replace(pair, info={**pair.info, "rivals_apart_deg": 30.0}))
+    doubted = pair_confidence(replace(pair, rivals_apart_deg=30.0))
     assert doubted.rivals_deg == 30.0 and not doubted.reliable
 
 

@@ -39,7 +39,7 @@ def test_a_pose_that_explains_more_of_every_matcher_s_matches_replaces_the_first
 
     def hypothesis(pose, own: int, right_ones: int, detector: str) -> ConsistentMatches:
         found = [_points_under(pose.R, pose.t, K, own, 1)] + [_points_under(right.R, right.t, K, right_ones, 2)]
-        matches = Matches(np.vstack([m.pts_a for m in found]), np.vstack([m.pts_b for m in found]))
+        matches = Matches.joined(found)
         return ConsistentMatches(matches, np.arange(len(matches)) < own, detector)
 
     poses = {"pooled": wrong, "ALIKED": right}

@@ -105,7 +105,7 @@ def pair_confidence(pair: PairGeometry) -> PoseConfidence:
         focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
                                                           for R in ends])
     return replace(pose_confidence(pair.inliers, pair.R, pair.plane, pair.pose_estimator, pair.K_a, pair.K_b,
-                                   size_a, focal_deg), rivals_deg=pair.info.get("rivals_apart_deg", 0.0))
+                                   size_a, focal_deg), rivals_deg=pair.rivals_apart_deg)
 
 
 def pose_confidence(inliers: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -36,6 +36,16 @@ from pis3r.reconstruct.pairs import FEW_INLIERS, ConsistentMatches, PairGeometry
 JUDGE_MARGIN = 1.25
 # A match counts for a pose up to this Sampson distance (px of a 1024 x 768 photo).
 JUDGE_DISTANCE_PX = 2.0
+
+
+class _Judged(NamedTuple):
+    """One hypothesis with its pose's rotation ``R``, its ``score`` on all the matches and which
+    of them its pose ``agrees`` with."""
+
+    hypothesis: ConsistentMatches
+    R: np.ndarray
+    score: float
+    agrees: np.ndarray
 
 
 def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, detector: str,
@@ -73,7 +83,7 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     steady (templeRing 13-25, 88 deg off: 3 deg where it had been 13). The detector named is the
     winning hypothesis's; where no pose won by ``JUDGE_MARGIN``, the largest angle between the
     rotations of those within it is ``rivals_apart_deg``."""
-    everything = Matches(*(np.vstack([getattr(h.matches, side) for h in hypotheses]) for side in ("pts_a", "pts_b")))
+    everything = Matches.joined([hypothesis.matches for hypothesis in hypotheses])
     reach = JUDGE_DISTANCE_PX * geometry.pixel_scale(width, height)
     scored = []
     for hypothesis in hypotheses:
@@ -83,16 +93,16 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
             continue
         distance = np.abs(np.nan_to_num(geometry.epipolar_distances(everything, pose.R, pose.t, pose.K_a, pose.K_b),
                                         nan=np.inf))
-        scored.append((float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)), distance < reach, hypothesis,
-                       pose.R))
+        scored.append(_Judged(hypothesis, pose.R, float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)),
+                              distance < reach))
     if not scored:
         return hypotheses[0]
     best = scored[0]
     for candidate in scored[1:]:
-        if candidate[0] > JUDGE_MARGIN * best[0]:
+        if candidate.score > JUDGE_MARGIN * best.score:
             best = candidate
-    rivals = [candidate[3] for candidate in scored if JUDGE_MARGIN * candidate[0] >= best[0]]
-    apart = max(rotation_angle_deg(R @ best[3].T) for R in rivals)
-    if best[2] is hypotheses[0]:
+    apart = max(rotation_angle_deg(candidate.R @ best.R.T) for candidate in scored
+                if JUDGE_MARGIN * candidate.score >= best.score)
+    if best.hypothesis is hypotheses[0]:
         return replace(hypotheses[0], rivals_apart_deg=apart)
-    return ConsistentMatches(everything, best[1], best[2].detector, apart)
+    return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart)

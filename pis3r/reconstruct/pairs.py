@@ -4,10 +4,10 @@ it, the focal and the relative pose exported for it.
 1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix. With fewer than ``FEW_INLIERS``
    epipolar inliers (wide baselines foreshorten surfaces beyond what SIFT matches), SIFT's,
    ASIFT's and XFeat + LighterGlue's matches (:mod:`pis3r.learned_features`) are pooled
-   (matcher ``auto``; :mod:`pis3r.reconstruct.hypotheses` then weighs them against ALIKED's
-   where their camera is unreliable), or ASIFT's replace SIFT's where more agree (matcher
-   ``sift``). ASIFT and XFeat detect on copies at most 640 px long: their matches are moved to
-   where their patches correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
+   (matcher ``auto``; :mod:`pis3r.reconstruct.hypotheses` then weighs them against ALIKED's),
+   or ASIFT's replace SIFT's where more agree (matcher ``sift``). ASIFT and XFeat detect on
+   copies at most 640 px long: their matches are moved to where their patches correlate on the
+   photos themselves (:func:`pis3r.subpixel.refine_matches`).
 2. Model: if one homography explains the inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
 3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
@@ -137,8 +137,7 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         with ThreadPoolExecutor(1) as pool:
             xfeat = pool.submit(learned, "xfeat")
             found = [sift, affine().matches, xfeat.result()]
-        return _epipolar(Matches(np.vstack([m.pts_a for m in found]), np.vstack([m.pts_b for m in found])), w, h,
-                         "pooled")
+        return _epipolar(Matches.joined(found), w, h, "pooled")
 
     if detector == "ASIFT":
         return affine()
@@ -177,7 +176,8 @@ class PairGeometry:
     relation and evidence). ``focal_interval``: the reference focals the evidence cannot
     tell apart (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None``: not measured).
     ``pose_estimator``: what fixed ``R``, ``t``: the ``essential`` matrix or the ``homography``
-    (its rotation or decomposition)."""
+    (its rotation or decomposition). ``rivals_apart_deg``: the matches'
+    (:attr:`ConsistentMatches.rivals_apart_deg`)."""
 
     model: str
     model_reason: str
@@ -195,6 +195,7 @@ class PairGeometry:
     info: dict
     focal_interval: FocalInterval | None = None
     pose_estimator: str = "essential"
+    rivals_apart_deg: float = 0.0
 
     @property
     def focal_determined(self) -> bool:
@@ -247,9 +248,8 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
             warnings = [*warnings, focal_warning(float(K_a[0, 0]), source, interval, "too few matches agree")]
         return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
                             tuple(warnings),
-                            {"features": found.detector, "num_inliers": int(f_inl.sum()),
-                             "rivals_apart_deg": found.rivals_apart_deg, **details}, interval,
-                            estimator or ("essential" if model == "3d" else "homography"))
+                            {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval,
+                            estimator or ("essential" if model == "3d" else "homography"), found.rivals_apart_deg)
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
