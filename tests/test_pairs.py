@@ -76,13 +76,17 @@ def test_an_exif_focal_that_no_rotation_fits_is_replaced_with_a_warning():
     assert flagged.focal_source == "flag" and flagged.K_a[0, 0] == 300.0
 
 
-def facade_pair(centre, yaw):
+def facade_pair(centre, yaw, porch: float = 0.0):
     """A facade slanted 35 deg, 8 m in front of the reference, and a second camera at
-    ``centre`` turned by ``yaw``: ``(photo_a, photo_b, reference camera, other camera)``."""
+    ``centre`` turned by ``yaw``: ``(photo_a, photo_b, reference camera, other camera)``. With
+    ``porch``, a square panel that many metres wide stands 1.5 m in front of the facade."""
     K = intrinsics(420.0, 480, 360)
     along = rotation_y(35.0)[:, 0]
     facade = [Plane(np.array([0, -4.0, 8.0]) - 6 * along, 12 * along, np.array([0, 8.0, 0]),
                     _texture("astronaut", 1024))]
+    if porch:
+        front = np.array([0, 0.5, 8.0]) - 1.5 * rotation_y(35.0)[:, 2] - porch / 2 * along
+        facade.append(Plane(front, porch * along, np.array([0, porch, 0]), _texture("coffee")))
     ref = Camera.identity(K, 480, 360)
     R = rotation_from_angles(yaw, 3.0, 0.0).T
     other = Camera(K, R, -R @ np.asarray(centre), 480, 360)

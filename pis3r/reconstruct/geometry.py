@@ -15,7 +15,7 @@ import numpy as np
 from pis3r.camera import SampsonPoints, focal_scaled, intrinsics, pixel_rays, sampson_distance
 from pis3r.features import Matches
 from pis3r.reconstruct.robust_lsq import robust_least_squares
-from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography
+from pis3r.robust import FOCAL_SCAN, RECONSTRUCTION, fit_essential, fit_fundamental, fit_homography, transfer_residuals
 
 # Added to the Sampson denominator so that the pose refinement's residuals stay finite.
 SAMPSON_EPS = 1e-12
@@ -25,6 +25,13 @@ FOCAL_RANGE = (0.3, 5.0)
 # 2 off the prior costs about as much as three matches 1 px off their epipolar lines, so it
 # decides only where the matches leave the focal free.
 FOCAL_PRIOR_WEIGHT = 3.0
+# A homography's inliers lie within this of where it takes them (px of a 1024 x 768 photo).
+HOMOGRAPHY_PX = 2.0
+# A match this many times farther off is clearly off the homography's plane: noise, JPEG and
+# the plane's own matches just past the fit's threshold lie between (a ray-traced facade: 24
+# of the 27 epipolar inliers its homography leaves out lie within 3 x; a panel 1.5 m in front
+# of it: 20 beyond; the fountain's 7-10 at 3072 px: 56).
+CLEAR_PARALLAX = 3.0
 # Relative jump of inverse depth between neighbours above which a pixel sits on a
 # depth edge: its point would be a "flying pixel" between fore- and background.
 DEPTH_EDGE_JUMP = 0.08
@@ -46,7 +53,15 @@ def homography(matches: Matches, width: int, height: int) -> tuple[np.ndarray | 
     """MAGSAC++ homography a -> b ``(3, 3)`` (or None) and its inlier mask."""
     if len(matches) < 4:
         return None, np.zeros(len(matches), bool)
-    return fit_homography(matches.pts_a, matches.pts_b, 2.0 * pixel_scale(width, height), RECONSTRUCTION)
+    return fit_homography(matches.pts_a, matches.pts_b, HOMOGRAPHY_PX * pixel_scale(width, height), RECONSTRUCTION)
+
+
+def clear_parallax(matches: Matches, H: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``(N,)`` bool: the matches (a ``width x height`` reference's) that ``H`` ``(3, 3)`` takes
+    farther than ``CLEAR_PARALLAX`` times its inlier threshold from where they are: off its
+    plane beyond noise."""
+    reach = CLEAR_PARALLAX * HOMOGRAPHY_PX * pixel_scale(width, height)
+    return transfer_residuals(H[None], matches.pts_a, matches.pts_b)[0] > reach
 
 
 def focal_candidates(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, int],

@@ -269,8 +269,12 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
             R, t, n = fit.R, np.zeros(3), None
         return result("homography", f"{why}: a rotation", fit.K_a, fit.K_b, R, t, n, source, interval, warnings,
                       details)
-    # Matches on one plane (within noise, or all but a few) leave the focal free.
-    plane_only = planar and (parallax.parallax_class == "rotation" or (~h_inl).sum() < MIN_MATCHES)
+    # Matches on one plane leave the focal free: all but a few of them. At a rotation's parallax
+    # level nine in ten lie on it within noise, and those just past the homography's threshold
+    # are its tail, which fits whichever epipole the fundamental matrix picks: there only the
+    # matches clearly off it count (a facade with a porch: those on the porch fix the focal).
+    off_plane = geometry.clear_parallax(inliers, H, *size_a) if parallax.parallax_class == "rotation" else ~h_inl
+    plane_only = planar and off_plane.sum() < MIN_MATCHES
     known_interval = None
     if focal_rule == "prior" and hypotheses[0].focal_a is None:
         # The prior as if it were known: a fresh essential fit at it (refined from the
