@@ -9,9 +9,11 @@ import pytest
 
 import pis3r
 from pis3r.features import Matches
-from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, pair_confidence,
+from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, confident_pair, pair_confidence,
                                           pose_confidence, unreliable_warning)
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
 from pis3r.reconstruct.pairs import FEW_INLIERS
+from tests.conftest import REAL, needs_real_data
 from tests.test_self_calibration import cameras_of, general_pair
 
 
@@ -24,6 +26,23 @@ def test_a_well_supported_pose_is_reliable_and_stable_under_resampling():
     # The same pose, had another matcher's pose 30 deg away explained the matches about as well.
     doubted = pair_confidence(replace(pair, rivals_apart_deg=30.0))
     assert doubted.rivals_deg == 30.0 and not doubted.reliable
+
+
+def test_a_focal_measured_on_an_unreliable_pose_is_not_presented_as_measured():
+    a, b, _, _ = general_pair()
+    pair = cameras_of(a, b)
+    assert pair.focal_measured and confident_pair(pair)[0] is pair
+    # The same pair, had two matchers' poses 30 deg apart explained the matches about as well.
+    doubted, confidence = confident_pair(replace(pair, rivals_apart_deg=30.0))
+    assert not confidence.reliable and not doubted.focal_determined and doubted.K_a[0, 0] == pair.K_a[0, 0]
+    assert doubted.focal_interval.low <= 0.3 * 480 and doubted.focal_interval.high >= 6 * 480
+    assert doubted.focal_source.startswith("the matches' minimum, on a pose they do not hold (essential matrix")
+    assert confidence.focal_deg > pair_confidence(pair).focal_deg and np.array_equal(doubted.R, pair.R)
+    [warning] = [line for line in doubted.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert "the pose it was measured with is unreliable" in warning and "--focal" in warning
+    # A focal given is no measurement of the pose's: it stands.
+    known = replace(cameras_of(a, b, focal=420.0), rivals_apart_deg=30.0)
+    assert confident_pair(known)[0] is known and known.focal_determined
 
 
 def test_few_or_scattered_matches_make_the_pose_unreliable():
@@ -92,3 +111,19 @@ def test_an_unreliable_camera_is_one_warning_of_the_stitch():
     lines = [line for line in result.report["warnings"] if "is unreliable" in line]
     assert not entry["reliable"] and len(lines) == 1 and lines[0].startswith(f"the camera of {entry['name']} ")
     assert entry["rotation_uncertainty_deg"] == pytest.approx(max(entry["resampled_deg"], entry["focal_deg"]))
+
+
+@pytest.mark.slow
+@needs_real_data
+def test_a_focal_pinned_on_a_doubtful_wide_baseline_is_not_called_determined():
+    """ScanNet 0722 with its reference cropped to 60 % (the crop protocol): the pooled matches
+    pin 691 px within 6 % (GT 1161) on a pose 10 deg off that the confidence flags. A focal that
+    far off is never called determined: the stitch says so, and why."""
+    from pis3r.eval.cases import load_crop_case
+
+    case = load_crop_case(REAL / "scannet-scene0722_00-000045-000735", crop=0.6)
+    result = pis3r.stitch([case.reference, case.target], backend="classical", refine="none")
+    focal = result.report["focal"]
+    if abs(focal["value"] / case.cameras["ref"].focal - 1) > 0.25:
+        assert focal["determined"] is False and not result.report["pose_confidence"][0]["reliable"]
+        assert any(line.startswith(UNDETERMINED_FOCAL) for line in result.report["warnings"])

@@ -46,7 +46,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER) -
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
     GT cameras."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
-    from pis3r.reconstruct.confidence import pair_confidence
+    from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
 
     case = load_case(spec, crop)
@@ -59,7 +59,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER) -
                                                                     Photo(case.target, "tgt"))
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
-    confidence = pair_confidence(pair)
+    pair, confidence = confident_pair(pair)
     errors = pose_error(np.hstack([pair.R, pair.t[:, None]]), case)
     if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
         errors["translation_error_deg"] = MISSING_TRANSLATION_DEG

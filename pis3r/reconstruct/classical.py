@@ -31,7 +31,7 @@ from pis3r.features import Matches, match
 from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.confidence import pair_confidence, unreliable_warning
+from pis3r.reconstruct.confidence import confident_pair, unreliable_warning
 from pis3r.reconstruct.focal import known_focal, partner_focal
 from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
@@ -198,10 +198,11 @@ class ClassicalReconstructor:
         self._place_chained(photos, pairs, anchors, scales, registered, failures)
         warnings = []
         for j in sorted(registered.keys() - {0}):
-            confidence = pair_confidence(pairs[j])
+            pairs[j], confidence = confident_pair(pairs[j])
             registered[j] = replace(registered[j], pose_confidence=confidence)
             warnings += [*pairs[j].warnings, *([] if confidence.reliable else [unreliable_warning(photos[j].name,
                                                                                                   confidence)])]
+        first = pairs[first_view]
         for thread in background:
             thread.join()
         for j in failures:

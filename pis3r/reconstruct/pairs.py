@@ -202,6 +202,24 @@ class PairGeometry:
         """Whether the evidence pins the reference's focal (its interval is narrow)."""
         return self.focal_interval is not None and self.focal_interval.determined(float(self.K_a[0, 0]))
 
+    @property
+    def focal_measured(self) -> bool:
+        """Whether the matches measured the reference's focal and pinned it (a narrow interval
+        that is not a known focal's single value)."""
+        return self.focal_determined and self.focal_interval.low < self.focal_interval.high
+
+    def focal_unmeasured(self, on_what: str, why: str) -> PairGeometry:
+        """This pair with the focal its matches pinned no longer presented as measured, where the
+        geometry it was measured on cannot be trusted: its interval spans the lens range too,
+        its source says it is the matches' minimum ``on_what``, and a warning says ``why``. The
+        focal and the pose stay as they are."""
+        width, height = (int(round(2 * c + 1)) for c in self.K_a[:2, 2])
+        lenses = FocalInterval.of_lenses(width, height)
+        interval = self.focal_interval.spanning(lenses.low).spanning(lenses.high)
+        source = f"the matches' minimum, {on_what} ({self.focal_source.split(' (', 1)[-1]}"
+        return replace(self, focal_interval=interval, focal_source=source,
+                       warnings=(*self.warnings, focal_warning(float(self.K_a[0, 0]), source, interval, why)))
+
 
 def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, focal_ref: float | None,
                   focal_other: float | None, known_source: str = "", focal_is_final: bool = False,
@@ -239,17 +257,14 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     few = f_inl.sum() < FEW_INLIERS
 
     def result(model, reason, K_a, K_b, R, t, plane, source, interval, warnings, details, estimator=None):
-        if few and interval.low < interval.high and interval.determined(float(K_a[0, 0])):
-            # A focal measured on a geometry that few matches support is no measurement (a
-            # ScanNet pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
-            lenses = FocalInterval.of_lenses(*size_a)
-            interval = interval.spanning(lenses.low).spanning(lenses.high)
-            source = f"the matches' minimum, on too few of them ({source.split(' (', 1)[-1]}"
-            warnings = [*warnings, focal_warning(float(K_a[0, 0]), source, interval, "too few matches agree")]
-        return PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
+        pair = PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
                             tuple(warnings),
                             {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval,
                             estimator or ("essential" if model == "3d" else "homography"), found.rivals_apart_deg)
+        # A focal measured on a geometry that few matches support is no measurement (a ScanNet
+        # pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
+        return pair.focal_unmeasured("on too few of them", "too few matches agree") if few and pair.focal_measured \
+            else pair
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
