@@ -9,7 +9,8 @@ import pytest
 from click.testing import CliRunner
 
 from pis3r.cli import main
-from pis3r.eval.poses import MISSING_TRANSLATION_DEG, medians
+from pis3r.eval.cases import discover_cases
+from pis3r.eval.poses import MISSING_TRANSLATION_DEG, evaluate_pose, medians
 from pis3r.io import write_png
 from tests.analytic import planes_scene, render, two_view_cameras
 from tests.conftest import REAL, needs_real_data
@@ -94,3 +95,14 @@ def test_calibrated_scenes_cameras_and_honest_focals(tmp_path):
     assert all(not r["determined"] and r["warnings"] != "0" for r in turntable)
     assert all(r["focal_low"] <= r["gt_focal"] <= r["focal_high"] for r in turntable)
     assert medians(rows)["wrongly_determined"] == 0 and "0 with a focal more than 25% off" in result.output
+
+
+def test_a_pair_resized_keeps_its_camera_and_its_focal_scales_with_it(tmp_path):
+    """``benchmarks/resized_poses.py``'s check: the same scene at twice the size."""
+    ref, tgt = two_view_cameras()
+    scene = planes_scene()
+    calibrated_pair(tmp_path / "planes", render(scene, ref)[0], render(scene, tgt)[0], ref, tgt)
+    [spec] = discover_cases(tmp_path, every_view_pair=True)
+    row = evaluate_pose(spec, 1.0, scale=2.0)
+    assert row["gt_focal"] == 2 * ref.K[0, 0] and row["focal"] == pytest.approx(2 * ref.K[0, 0], rel=0.03)
+    assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0 and row["determined"]

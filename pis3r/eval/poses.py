@@ -20,6 +20,7 @@ import math
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from pis3r.errors import Pis3rError
@@ -42,9 +43,10 @@ WRONG_DIRECTION_DEG = 10.0
 MISSING_TRANSLATION_DEG = 90.0
 
 
-def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER) -> dict | None:
+def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0) -> dict | None:
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
-    GT cameras."""
+    GT cameras; with ``scale``, both photos resized by it first (bicubic, the GT focal with
+    them): the same scenes at the sizes other cameras take them (``benchmarks/resized_poses.py``)."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
@@ -52,11 +54,14 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER) -
     case = load_case(spec, crop)
     if case.cameras is None:
         return None
-    row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal, "refused": ""}
+    row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal * scale, "refused": ""}
+    reference, target = (image if scale == 1.0 else
+                         np.clip(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC), 0, 1)
+                         for image in (case.reference, case.target))
     start = time.perf_counter()
     try:
-        pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(case.reference, "ref"),
-                                                                    Photo(case.target, "tgt"))
+        pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(reference, "ref"),
+                                                                                   Photo(target, "tgt"))
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
     pair, confidence = confident_pair(pair)
