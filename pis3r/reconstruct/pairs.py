@@ -16,7 +16,9 @@ it, the focal and the relative pose exported for it.
    that rotation, or as the rotation itself where the plane's translation is negligible.
    Otherwise it has a baseline: focal and pose come from the epipolar geometry as for 3-D
    pairs, and the exported pose is the homography's decomposition the epipolar inliers
-   support (so the rendered plane is the homography exactly).
+   support (so the rendered plane is the homography exactly). The focal is left free (the
+   prior) only where all but a few inliers lie on the plane; at a rotation's parallax level,
+   all but a few clearly (:func:`pis3r.reconstruct.geometry.clear_parallax`).
 4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
    refined jointly over all inliers (robust Sampson, weak prior).
 5. Every focal carries its interval (:class:`pis3r.reconstruct.focal.FocalInterval`): the
