@@ -120,8 +120,7 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
             # own interval says.
             focal = float(pairs[j].K_a[0, 0]) * factor
             source = f"{source.split(JOINTLY)[0]}{JOINTLY} {len(start.views) + 1} views jointly"
-            width, height = (2 * pairs[j].K_a[:2, 2] + 1).round().astype(int)
-            interval = relative.scaled(focal).within(FocalInterval.of_lenses(width, height), focal)
+            interval = relative.scaled(focal).within(FocalInterval.of_lenses(*pairs[j].reference_size), focal)
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
             if not interval.determined(focal):
                 warnings += (focal_warning(focal, source, interval, f"{len(start.views) + 1} views refined together"),)

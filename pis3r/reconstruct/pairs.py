@@ -211,6 +211,12 @@ class PairGeometry:
         return self.focal_interval is not None and self.focal_interval.determined(float(self.K_a[0, 0]))
 
     @property
+    def reference_size(self) -> tuple[int, int]:
+        """The reference photo's ``(width, height)``, from its principal point (the centre)."""
+        width, height = (int(round(2 * c + 1)) for c in self.K_a[:2, 2])
+        return width, height
+
+    @property
     def focal_measured(self) -> bool:
         """Whether the matches measured the reference's focal and pinned it (a narrow interval
         that is not a known focal's single value)."""
@@ -221,8 +227,7 @@ class PairGeometry:
         geometry it was measured on cannot be trusted: its interval spans the lens range too,
         its source says it is the matches' minimum ``on_what``, and a warning says ``why``. The
         focal and the pose stay as they are."""
-        width, height = (int(round(2 * c + 1)) for c in self.K_a[:2, 2])
-        lenses = FocalInterval.of_lenses(width, height)
+        lenses = FocalInterval.of_lenses(*self.reference_size)
         interval = self.focal_interval.spanning(lenses.low).spanning(lenses.high)
         source = f"the matches' minimum, {on_what} ({self.focal_source.split(' (', 1)[-1]}"
         return replace(self, focal_interval=interval, focal_source=source,
