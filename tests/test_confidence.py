@@ -43,6 +43,9 @@ def test_a_focal_measured_on_an_unreliable_pose_is_not_presented_as_measured():
     # A focal given is no measurement of the pose's: it stands.
     known = replace(cameras_of(a, b, focal=420.0), rivals_apart_deg=30.0)
     assert confident_pair(known)[0] is known and known.focal_determined
+    # Nor one that more views fitted together (pis3r.reconstruct.joint): the pair's own pose is not all it rests on.
+    joint = replace(pair, rivals_apart_deg=30.0, focal_views=4)
+    assert confident_pair(joint)[0] is joint
 
 
 def test_few_or_scattered_matches_make_the_pose_unreliable():

@@ -89,6 +89,7 @@ def test_the_poses_and_a_wrong_focal_are_recovered_together():
         # The principal point stays where it was.
         np.testing.assert_array_equal(pair.K_a[:2, 2], _K(FOCAL)[:2, 2])
         assert np.linalg.norm(pair.t) == pytest.approx(1.0) and "refined over 5 views jointly" in pair.focal_source
+        assert pair.focal_views == 5
     rotation, direction = _errors(fit.pairs, cameras)
     assert rotation < 0.05 and direction < 0.3
     assert fit.after_px < 0.5 < fit.before_px
@@ -106,7 +107,7 @@ def test_a_known_focal_is_kept():
     pairs, cameras, _ = _scene(4, FOCAL, noise_px=0.3, seed=1)
     fit = refine_jointly(pairs, refine_focal=False)
     assert fit.focal_factor == 1.0 and all(pair.K_a[0, 0] == FOCAL for pair in fit.pairs.values())
-    assert all(pair.focal_source == "prior" for pair in fit.pairs.values())
+    assert all(pair.focal_source == "prior" and pair.focal_views == 2 for pair in fit.pairs.values())
     kept = refine_jointly({**pairs, 1: replace(pairs[1], warnings=(UNDETERMINED_FOCAL,))}, refine_focal=False)
     assert kept.pairs[1].warnings == (UNDETERMINED_FOCAL,)
     # 2 deg off before; what 0.3 px of noise leaves of a 24 deg field of view after.

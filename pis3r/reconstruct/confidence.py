@@ -41,7 +41,6 @@ import numpy as np
 from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.joint import JOINTLY
 from pis3r.reconstruct.pairs import FEW_INLIERS, PairGeometry
 
 # Resampled fits per pair, and the percentile of their rotation errors reported: one fit in
@@ -96,8 +95,8 @@ class PoseConfidence:
 
 def pair_confidence(pair: PairGeometry) -> PoseConfidence:
     """:func:`pose_confidence` of a pair's exported pose."""
-    # The thresholds scale with the reference's size, which its principal point (the centre) gives.
-    size_a = tuple(int(round(2 * c)) for c in pair.K_a[:2, 2])
+    # The thresholds scale with the reference's size.
+    size_a = pair.reference_size
     interval, focal_deg = pair.focal_interval, 0.0
     if interval is not None and interval.low < interval.high:
         cv2.setRNGSeed(RESAMPLE_SEED)
@@ -119,7 +118,7 @@ def confident_pair(pair: PairGeometry) -> tuple[PairGeometry, PoseConfidence]:
     (:meth:`PairGeometry.focal_unmeasured`), and its confidence taken on the wider interval.
     A focal that views refined together fixed (:mod:`pis3r.reconstruct.joint`) stands."""
     confidence = pair_confidence(pair)
-    if confidence.reliable or not pair.focal_measured or JOINTLY in pair.focal_source:
+    if confidence.reliable or not pair.focal_measured or pair.focal_views > 2:
         return pair, confidence
     loose = pair.focal_unmeasured("on a pose they do not hold", "the pose it was measured with is unreliable")
     return loose, pair_confidence(loose)

@@ -115,18 +115,20 @@ def refine_jointly(pairs: dict[int, PairGeometry], refine_focal: bool,
         t_rel = world[j][1] - R_rel @ t_a
         baselines[j] = float(np.linalg.norm(t_rel))
         source, warnings, interval = pairs[j].focal_source, pairs[j].warnings, pairs[j].focal_interval
+        views = pairs[j].focal_views
         if refine_focal:
             # The views together determine the focal the pair left free, as far as the fit's
             # own interval says.
             focal = float(pairs[j].K_a[0, 0]) * factor
-            source = f"{source.split(JOINTLY)[0]}{JOINTLY} {len(start.views) + 1} views jointly"
+            views = len(start.views) + 1
+            source = f"{source.split(JOINTLY)[0]}{JOINTLY} {views} views jointly"
             interval = relative.scaled(focal).within(FocalInterval.of_lenses(*pairs[j].reference_size), focal)
             warnings = tuple(line for line in warnings if not line.startswith(UNDETERMINED_FOCAL))
             if not interval.determined(focal):
-                warnings += (focal_warning(focal, source, interval, f"{len(start.views) + 1} views refined together"),)
+                warnings += (focal_warning(focal, source, interval, f"{views} views refined together"),)
         refined[j] = replace(pairs[j], R=R_rel, t=t_rel / np.linalg.norm(t_rel), K_a=focal_scaled(pairs[j].K_a, factor),
                              K_b=focal_scaled(pairs[j].K_b, factor), focal_source=source, warnings=warnings,
-                             focal_interval=interval)
+                             focal_interval=interval, focal_views=views)
     return JointFit(refined, baselines, len(start.views), factor, before, problem.median_error(fitted), iterations,
                     len(start.X), int(np.sum(start.camera > 0)))
 

@@ -185,7 +185,8 @@ class PairGeometry:
     tell apart (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None``: not measured).
     ``pose_estimator``: what fixed ``R``, ``t``: the ``essential`` matrix or the ``homography``
     (its rotation or decomposition). ``rivals_apart_deg``: the matches'
-    (:attr:`ConsistentMatches.rivals_apart_deg`)."""
+    (:attr:`ConsistentMatches.rivals_apart_deg`). ``focal_views``: how many views the focal
+    was fitted over (2: this pair's own; more where :mod:`pis3r.reconstruct.joint` refined it)."""
 
     model: str
     model_reason: str
@@ -204,6 +205,7 @@ class PairGeometry:
     focal_interval: FocalInterval | None = None
     pose_estimator: str = "essential"
     rivals_apart_deg: float = 0.0
+    focal_views: int = 2
 
     @property
     def focal_determined(self) -> bool:
