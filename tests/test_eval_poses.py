@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from pis3r.cli import main
 from pis3r.eval.cases import discover_cases
-from pis3r.eval.poses import MISSING_TRANSLATION_DEG, evaluate_pose, medians
+from pis3r.eval.poses import MISSING_TRANSLATION_DEG, as_taken, evaluate_pose, medians
 from pis3r.io import write_png
 from tests.analytic import planes_scene, render, two_view_cameras
 from tests.conftest import REAL, needs_real_data
@@ -106,3 +106,22 @@ def test_a_pair_resized_keeps_its_camera_and_its_focal_scales_with_it(tmp_path):
     row = evaluate_pose(spec, 1.0, scale=2.0)
     assert row["gt_focal"] == 2 * ref.K[0, 0] and row["focal"] == pytest.approx(2 * ref.K[0, 0], rel=0.03)
     assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0 and row["determined"]
+
+
+
+def test_a_pair_darkened_keeps_its_camera(tmp_path):
+    """``benchmarks/resized_poses.py --gains``: the same photos exposed 0.15 times as long and
+    stored in 8 bits again (SIFT's absolute contrast threshold loses most of their keypoints;
+    the pool of matchers takes over) keep their camera and their focal."""
+    ref, tgt = two_view_cameras()
+    scene = planes_scene()
+    photo = render(scene, ref)[0]
+    calibrated_pair(tmp_path / "planes", photo, render(scene, tgt)[0], ref, tgt)
+    dark = as_taken(photo, 1.0, 0.15)
+    assert dark.dtype == photo.dtype and dark.max() <= 0.15 + 1e-6
+    np.testing.assert_allclose(dark * 255, np.round(dark * 255), atol=1e-3)
+    assert as_taken(photo, 1.0, 1.0) is photo
+    [spec] = discover_cases(tmp_path, every_view_pair=True)
+    row = evaluate_pose(spec, 1.0, gain=0.15)
+    assert row["gt_focal"] == ref.K[0, 0] and row["focal"] == pytest.approx(ref.K[0, 0], rel=0.1)
+    assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0

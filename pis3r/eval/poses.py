@@ -43,10 +43,13 @@ WRONG_DIRECTION_DEG = 10.0
 MISSING_TRANSLATION_DEG = 90.0
 
 
-def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0) -> dict | None:
+def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0,
+                  gain: float = 1.0) -> dict | None:
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
     GT cameras; with ``scale``, both photos resized by it first (bicubic, the GT focal with
-    them): the same scenes at the sizes other cameras take them (``benchmarks/resized_poses.py``)."""
+    them), and with ``gain``, their values multiplied by it and quantised to 8 bits again: the
+    same scenes at the sizes and exposures other cameras take them in
+    (``benchmarks/resized_poses.py``)."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
@@ -55,9 +58,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     if case.cameras is None:
         return None
     row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal * scale, "refused": ""}
-    reference, target = (image if scale == 1.0 else
-                         np.clip(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC), 0, 1)
-                         for image in (case.reference, case.target))
+    reference, target = (as_taken(image, scale, gain) for image in (case.reference, case.target))
     start = time.perf_counter()
     try:
         pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(reference, "ref"),
@@ -74,6 +75,16 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
             "focal_source": pair.focal_source,
             "focal_low": pair.focal_interval.low, "focal_high": pair.focal_interval.high,
             "determined": pair.focal_determined, "seconds": time.perf_counter() - start}
+
+
+def as_taken(image: np.ndarray, scale: float, gain: float) -> np.ndarray:
+    """``(H, W, 3)`` float ``image`` resized by ``scale`` (bicubic) and exposed ``gain`` times
+    as long, in 8-bit steps as a camera would store it (the same array where both are 1)."""
+    if scale != 1.0:
+        image = np.clip(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC), 0, 1)
+    if gain != 1.0:
+        image = (np.round(np.clip(image * gain, 0, 1) * 255) / 255).astype(image.dtype)
+    return image
 
 
 def medians(rows: list[dict]) -> dict:
