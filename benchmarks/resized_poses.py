@@ -16,7 +16,9 @@ lack: this checks that pis3r's thresholds and working sizes follow the photo's s
 more pixels help. ``--gains`` does the same for the exposure: each photo's values multiplied by
 the gain and quantised to 8 bits again (0.15: the temple's white object as dark as a dark one
 on its black turntable), so that an absolute intensity threshold shows. ``--only`` takes scene
-names (``strecha-fountain-P11``) or pair names (``strecha-fountain-P11/7-10``).
+names (``strecha-fountain-P11``) or pair names (``strecha-fountain-P11/7-10``), and also pair
+folders with GT cameras (the ScanNet pairs: ``--scales 0.95 1 1.05 1.1`` shows how much of a
+wide baseline's pose is luck).
 """
 
 from __future__ import annotations
@@ -24,11 +26,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from pis3r.eval.cases import discover_cases
+from pis3r.eval.cases import CaseSpec, discover_cases
 from pis3r.eval.poses import evaluate_pose, format_table, medians
 from pis3r.reconstruct.options import DEFAULT_MATCHER, MATCHERS
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+def selected_cases(data: Path, only: list[str] | None) -> list[CaseSpec]:
+    """The view pairs of every calibrated scene under ``data``, or, with ``only``, the cases
+    named there: scenes, their pairs, or pair folders (GT cameras or not: those without are
+    skipped when evaluated)."""
+    return [spec for spec in discover_cases(data, every_view_pair=True)
+            if (spec.name in only or spec.name.split("/")[0] in only if only else spec.kind == "calibrated")]
 
 
 def main() -> None:
@@ -37,14 +47,14 @@ def main() -> None:
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 2.0, 3.0])
     parser.add_argument("--gains", type=float, nargs="+", default=[1.0], help="exposure factors (1: as stored)")
     parser.add_argument("--crop", type=float, default=1.0, help="share of the reference kept (1: the whole photo)")
-    parser.add_argument("--only", nargs="*", default=None, help="scene or pair names (default: every calibrated scene)")
+    parser.add_argument("--only", nargs="*", default=None,
+                        help="scene or pair names, or pair folders with GT cameras (default: every calibrated scene)")
     parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=MATCHERS)
     args = parser.parse_args()
     if any(factor <= 0 for factor in args.scales + args.gains):
         parser.error("--scales, --gains: give positive factors")
 
-    specs = [spec for spec in discover_cases(args.data, every_view_pair=True) if spec.kind == "calibrated"
-             and (not args.only or spec.name in args.only or spec.name.split("/")[0] in args.only)]
+    specs = selected_cases(args.data, args.only)
     if not specs:
         parser.error(f"{args.data}: no calibrated scene{' of --only' if args.only else ''}")
     summaries = []
