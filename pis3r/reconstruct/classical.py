@@ -37,8 +37,8 @@ from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
-from pis3r.reconstruct.pairs import (FEW_INLIERS, ConsistentMatches, PairGeometry, PhotoFeatures, consistent_matches,
-                                     estimate_pair)
+from pis3r.reconstruct.pairs import (FEW_INLIERS, SECOND_LOOK, ConsistentMatches, PairGeometry, PhotoFeatures,
+                                     consistent_matches, estimate_pair)
 from pis3r.reconstruct.views import flows, homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View, compute_in_background
@@ -289,7 +289,8 @@ class ClassicalReconstructor:
         return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher),
                               lambda: second_opinion(ref, other, consistent_matches(ref, other, detector, strongest,
                                                                                     matcher), detector, self.options,
-                                                     lambda: self._consistent_matches(ref, other, "ALIKED"),
+                                                     (lambda: self._consistent_matches(ref, other, "ALIKED"),
+                                                      lambda: self._consistent_matches(ref, other, SECOND_LOOK)),
                                                      self._memoised))
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:

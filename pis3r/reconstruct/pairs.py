@@ -41,7 +41,8 @@ from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
 from pis3r.io import Photo
-from pis3r.learned_features import LEARNED_NETWORKS, LearnedKeypoints, learned_keypoints, learned_matches
+from pis3r.learned_features import (LEARNED_NETWORKS, SECOND_LOOK_SIDE, LearnedKeypoints, learned_keypoints,
+                                    learned_matches)
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
@@ -85,24 +86,28 @@ class PhotoFeatures:
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))
-        # XFeat sees the luminance, ALIKED the colours it was trained on.
-        self._learned = {name: Deferred(lambda name=name: learned_keypoints(
-            self.gray if name == "xfeat" else photo.pixels, name)) for name in LEARNED_NETWORKS}
+        self._learned: dict[tuple[str, int | None], Deferred] = {}
 
     @property
     def affine(self) -> Features:
         return self._affine.value()
 
-    def learned(self, network: str) -> LearnedKeypoints:
-        """The ``network``'s keypoints (:data:`pis3r.learned_features.LEARNED_NETWORKS`)."""
-        return self._learned[network].value()
+    def learned(self, network: str, max_side: int | None = None) -> LearnedKeypoints:
+        """The ``network``'s keypoints (:data:`pis3r.learned_features.LEARNED_NETWORKS`), on a copy
+        at most ``max_side`` long (the network's own size by default), found once."""
+        # XFeat sees the luminance, ALIKED the colours it was trained on.
+        image = self.gray if network == "xfeat" else self.photo.pixels
+        found = self._learned.setdefault((network, max_side),
+                                         Deferred(lambda: learned_keypoints(image, network, max_side)))
+        return found.value()
 
 
 @dataclass(frozen=True)
 class ConsistentMatches:
     """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
-    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat``, ``ALIKED`` or
-    ``pooled`` (SIFT's, ASIFT's and XFeat's together). ``rivals_apart_deg``: where another
+    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat``, ``ALIKED``,
+    ``pooled`` (SIFT's, ASIFT's and XFeat's together) or ``SECOND_LOOK`` (ALIKED's at
+    :data:`pis3r.learned_features.SECOND_LOOK_SIDE`). ``rivals_apart_deg``: where another
     matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
     neither pose explained clearly more of both, the angle between their rotations; else 0."""
 
@@ -110,6 +115,10 @@ class ConsistentMatches:
     inliers: np.ndarray
     detector: str
     rivals_apart_deg: float = 0.0
+
+
+# ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).
+SECOND_LOOK = "ALIKED, second look"
 
 
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
@@ -121,7 +130,7 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     ``FEW_INLIERS`` agree; where fewer do, ``sift`` takes ASIFT's and ``auto`` SIFT's, ASIFT's
     and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat`` and
     ``aliked`` take that network's alone from the start. ``SIFT`` (on the ``strongest`` if
-    given), ``ASIFT``, ``XFeat``, ``ALIKED`` or ``pooled``: those alone."""
+    given), ``ASIFT``, ``XFeat``, ``ALIKED``, ``pooled`` or ``SECOND_LOOK``: those alone."""
     w, h = a.photo.width, a.photo.height
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
@@ -133,8 +142,9 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         pts_b[found.inliers] = refined.pts_b
         return replace(found, matches=Matches(found.matches.pts_a, pts_b))
 
-    def learned(network: str) -> Matches:
-        return learned_matches(a.gray, b.gray, a.learned(network), b.learned(network), network).matches
+    def learned(network: str, max_side: int | None = None) -> Matches:
+        return learned_matches(a.gray, b.gray, a.learned(network, max_side), b.learned(network, max_side),
+                               network).matches
 
     def pooled(sift: Matches) -> ConsistentMatches:
         # Each detector finds some of a wide baseline's correspondences; wrong ones agree with
@@ -149,6 +159,8 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
 
     if detector == "ASIFT":
         return affine()
+    if detector == SECOND_LOOK:
+        return _epipolar(learned("aliked", SECOND_LOOK_SIDE), w, h, SECOND_LOOK)
     for network in LEARNED_NETWORKS.values():
         if detector == network.label or (detector == "auto" and matcher == network.name):
             return _epipolar(learned(network.name), w, h, network.label)
