@@ -108,7 +108,6 @@ def test_a_pair_resized_keeps_its_camera_and_its_focal_scales_with_it(tmp_path):
     assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0 and row["determined"]
 
 
-
 def test_a_pair_darkened_keeps_its_camera(tmp_path):
     """``benchmarks/resized_poses.py --gains``: the same photos exposed 0.15 times as long and
     stored in 8 bits again (SIFT's absolute contrast threshold loses most of their keypoints;

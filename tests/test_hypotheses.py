@@ -88,6 +88,7 @@ def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
 
     poses = {"pooled": chosen, "ALIKED": chosen, SECOND_LOOK: other}
     pooled, aliked = hypothesis(chosen, 100, 1, "pooled"), hypothesis(chosen, 90, 2, "ALIKED")
+
     def judge(found):
         return poses[found.detector]
 

@@ -289,8 +289,8 @@ class ClassicalReconstructor:
         return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher),
                               lambda: second_opinion(ref, other, consistent_matches(ref, other, detector, strongest,
                                                                                     matcher), detector, self.options,
-                                                     (lambda: self._consistent_matches(ref, other, "ALIKED"),
-                                                      lambda: self._consistent_matches(ref, other, SECOND_LOOK)),
+                                                     lambda: self._consistent_matches(ref, other, "ALIKED"),
+                                                     lambda: self._consistent_matches(ref, other, SECOND_LOOK),
                                                      self._memoised))
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:

@@ -47,23 +47,24 @@ JUDGE_DISTANCE_PX = 2.0
 
 
 class _Judged(NamedTuple):
-    """One hypothesis with its pose's rotation ``R``, its ``score`` on all the matches and which
-    of them its pose ``agrees`` with."""
+    """One hypothesis with its ``pose``, the pose's ``score`` on all the matches and which of them
+    it ``agrees`` with."""
 
     hypothesis: ConsistentMatches
-    R: np.ndarray
+    pose: PairGeometry
     score: float
     agrees: np.ndarray
 
 
 def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, detector: str,
-                   options: ReconstructOptions, alternatives: tuple[Callable[[], ConsistentMatches], ...],
+                   options: ReconstructOptions, alternative: Callable[[], ConsistentMatches],
+                   second_look: Callable[[], ConsistentMatches],
                    remember: Callable[[tuple, Callable], Any]) -> ConsistentMatches:
     """``found`` (the matches of ``ref`` in ``other`` that ``detector`` gave), or, where the
     matcher is ``auto`` (``options``) and SIFT's were too few, :func:`judged_matches` of it and
-    the ``alternatives``' matches (ALIKED's, and ALIKED's again at a second size), each
-    hypothesis's pose fitted at the focals the pair knows (the flag, EXIF), with ``remember``
-    (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo)."""
+    the ``alternative`` matches (ALIKED's), checked against the ``second_look``'s (ALIKED's at a
+    second size), each hypothesis's pose fitted at the focals the pair knows (the flag, EXIF),
+    with ``remember`` (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo)."""
     if (detector, options.matcher) != ("auto", "auto") or (found.detector == "SIFT"
                                                             and found.inliers.sum() >= FEW_INLIERS):
         return found
@@ -71,9 +72,7 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
     judge = partial(estimate_pair, ref, other, focal_ref=focal_ref, known_source=source, model="3d",
                     focal_other=partner_focal(other.photo, ref.photo, focal_ref, options.focal),
                     focal_is_final=bool(options.focal), focal_rule=options.focal_rule, remember=remember)
-    *others, second_look = alternatives
-    return judged_matches([found, *(alternative() for alternative in others)], judge, ref.photo.width,
-                          ref.photo.height, checks=[second_look()])
+    return judged_matches([found, alternative()], judge, ref.photo.width, ref.photo.height, checks=[second_look()])
 
 
 def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[ConsistentMatches], PairGeometry],
@@ -100,36 +99,38 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     angle between its pose and the winner's counts in ``rivals_apart_deg`` as well."""
     everything = Matches.joined([hypothesis.matches for hypothesis in hypotheses])
     reach = JUDGE_DISTANCE_PX * geometry.pixel_scale(width, height)
-    scored = [_judged(hypothesis, judge, everything, reach) for hypothesis in hypotheses]
-    scored = [candidate for candidate in scored if candidate is not None]
+    posed = [(hypothesis, _pose(hypothesis, judge)) for hypothesis in hypotheses]
+    scored = [_judged(hypothesis, pose, everything, reach) for hypothesis, pose in posed if pose is not None]
     if not scored:
         return hypotheses[0]
     best = scored[0]
     for candidate in scored[1:]:
         if candidate.score > JUDGE_MARGIN * best.score:
             best = candidate
-    apart = max(rotation_angle_deg(candidate.R @ best.R.T) for candidate in scored
+    apart = max(rotation_angle_deg(candidate.pose.R @ best.pose.R.T) for candidate in scored
                 if JUDGE_MARGIN * candidate.score >= best.score)
     if checks:
         with_checks = Matches.joined([everything, *(check.matches for check in checks)])
-        winner = _judged(best.hypothesis, judge, with_checks, reach)
+        winner = _judged(best.hypothesis, best.pose, with_checks, reach)
         for check in checks:
-            looked = _judged(check, judge, with_checks, reach)
-            if looked is not None and JUDGE_MARGIN * looked.score >= winner.score:
-                apart = max(apart, rotation_angle_deg(looked.R @ winner.R.T))
+            pose = _pose(check, judge)
+            if pose is not None and JUDGE_MARGIN * _judged(check, pose, with_checks, reach).score >= winner.score:
+                apart = max(apart, rotation_angle_deg(pose.R @ best.pose.R.T))
     if best.hypothesis is hypotheses[0]:
         return replace(hypotheses[0], rivals_apart_deg=apart)
     return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart)
 
 
-def _judged(hypothesis: ConsistentMatches, judge: Callable[[ConsistentMatches], PairGeometry], matches: Matches,
-            reach: float) -> _Judged | None:
-    """``hypothesis`` with its pose's score on ``matches`` (MSAC within ``reach`` px), or ``None``
-    where ``judge`` finds no pose."""
+def _pose(hypothesis: ConsistentMatches, judge: Callable[[ConsistentMatches], PairGeometry]) -> PairGeometry | None:
+    """The pose ``judge`` fits to ``hypothesis``, or ``None`` where it finds none."""
     try:
-        pose = judge(hypothesis)
+        return judge(hypothesis)
     except Pis3rError:
         return None
+
+
+def _judged(hypothesis: ConsistentMatches, pose: PairGeometry, matches: Matches, reach: float) -> _Judged:
+    """``hypothesis`` with its ``pose``'s score on ``matches`` (MSAC within ``reach`` px)."""
     distance = np.abs(np.nan_to_num(geometry.epipolar_distances(matches, pose.R, pose.t, pose.K_a, pose.K_b),
                                     nan=np.inf))
-    return _Judged(hypothesis, pose.R, float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)), distance < reach)
+    return _Judged(hypothesis, pose, float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)), distance < reach)
