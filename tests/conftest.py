@@ -1,5 +1,8 @@
+import importlib.util
 import os
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -15,6 +18,17 @@ def real_pairs() -> list[Path]:
     if not REAL.is_dir():
         return []
     return sorted(p for p in REAL.iterdir() if p.is_dir() and list(p.glob("ref.*")) and list(p.glob("tgt.*")))
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """``benchmarks/<name>.py`` imported as module ``benchmarks_<name>`` (benchmarks/ is no
+    package), registered in ``sys.modules``: a benchmark's dataclasses look their module up by name."""
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", Path(__file__).resolve().parents[1]
+                                                  / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 needs_real_data = pytest.mark.skipif(

@@ -1,22 +1,15 @@
 """benchmarks/band_choice.py (issue 11): what the held-back band's choice costs per pair
 against each model forced. Nothing is timed here."""
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import cv2
 import pytest
 
 from pis3r.eval.cases import load_crop_case
+from tests.conftest import load_benchmark
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "band_choice.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_band_choice", _PATH)
-band_choice = importlib.util.module_from_spec(_SPEC)
-# Its dataclasses look their module up by name.
-sys.modules[_SPEC.name] = band_choice
-_SPEC.loader.exec_module(band_choice)
+band_choice = load_benchmark("band_choice")
 
 
 @pytest.fixture(scope="module")

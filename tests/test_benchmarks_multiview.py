@@ -2,8 +2,6 @@
 run from pis3r's joint start recovers what pis3r's own fit does, and the pose errors measured
 against a GT are the angles they claim. Nothing is timed here."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,12 +11,10 @@ from pis3r.camera import Camera
 from pis3r.reconstruct.joint import refine_jointly
 from pis3r.reconstruct.tracks import joint_start
 
+from .conftest import load_benchmark
 from .test_joint import FOCAL, _scene
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "multiview_pose.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_multiview_pose", _PATH)
-multiview = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(multiview)
+multiview = load_benchmark("multiview_pose")
 
 
 def test_pycolmap_from_the_joint_start_finds_the_focal_and_poses_pis3r_finds():

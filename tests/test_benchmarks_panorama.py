@@ -1,15 +1,13 @@
 """The pure helpers of benchmarks/panorama.py (issue 41): the rectangle a result is scored on,
 the commands, and the bar values. Nothing is timed here."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "panorama.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_panorama", _PATH)
-panorama = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(panorama)
+from tests.conftest import load_benchmark
+
+panorama = load_benchmark("panorama")
 
 
 def test_results_are_scored_on_a_rectangle_inside_their_filled_pixels():

@@ -1,19 +1,15 @@
 """The helpers of benchmarks/render.py (issue 10): the mask comb measure and the triangle
 batches its floor rows time. Nothing is timed here."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
 from pis3r.mesh import view_mesh
 from pis3r.stitch.raster import rasterise
 from pis3r.stitch.render import render_to_canvas
+from tests.conftest import load_benchmark
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "render.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_render", _PATH)
-render_bench = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(render_bench)
+render_bench = load_benchmark("render")
 
 
 def test_mask_changes_counts_valid_background_switches_per_row():

@@ -2,18 +2,13 @@
 and with ``--only`` the scenes, pairs or pair folders named (the ScanNet pairs have GT cameras
 but are not calibrated scenes). The evaluation itself is tested in test_eval_poses.py."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
-from .conftest import REAL, needs_real_data
+from .conftest import REAL, load_benchmark, needs_real_data
 from .test_eval_poses import calibrated_pair, two_view_cameras
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "resized_poses.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_resized_poses", _PATH)
-resized = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(resized)
+resized = load_benchmark("resized_poses")
 
 
 def test_a_pair_folder_is_taken_only_when_named(tmp_path):

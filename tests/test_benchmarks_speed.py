@@ -1,15 +1,12 @@
 """The pure helpers of benchmarks/speed.py (issue 12): resizing to a megapixel target, the
 fountain views chosen, the growth ratio and the bar verdicts. Nothing is timed here."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "speed.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_speed", _PATH)
-speed = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(speed)
+from tests.conftest import load_benchmark
+
+speed = load_benchmark("speed")
 
 
 def test_resize_to_megapixels_keeps_the_aspect_both_ways():

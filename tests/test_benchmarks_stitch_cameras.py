@@ -1,20 +1,16 @@
 """benchmarks/stitch_cameras.py (issue 39): `pis3r stitch`'s exported cameras against GT cameras,
 and the counts its bar names. One real stitch of an exact ray-traced pair; nothing is timed."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tests.analytic import planes_scene, render, two_view_cameras
+from tests.conftest import load_benchmark
 from tests.test_eval_poses import calibrated_pair
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "stitch_cameras.py"
-_SPEC = importlib.util.spec_from_file_location("benchmarks_stitch_cameras", _PATH)
-stitch_cameras = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(stitch_cameras)
+stitch_cameras = load_benchmark("stitch_cameras")
 
 
 def test_a_stitched_pair_s_cameras_are_measured_against_its_gt(tmp_path):
