@@ -1,21 +1,25 @@
-"""The exported cameras of the calibrated scenes with their photos resized or darkened (issue
-39): a focal found at one size and exposure must hold at those other cameras take the same
-scenes in.
+"""The exported cameras of the calibrated scenes with their photos resized, darkened or narrowed
+(issue 39): a focal found at one size, exposure and field of view must hold at those other
+cameras take the same scenes in.
 
     .venv/bin/python benchmarks/resized_poses.py [--data ../shared/data/real] [--scales 1 2 3]
-        [--gains 1] [--crop 1] [--only NAME ...] [--matcher auto]
+        [--gains 1] [--zooms 1] [--crop 1] [--only NAME ...] [--matcher auto]
 
 The development set stores the Strecha scenes at 1024 x 683 (from 3072 x 2048, the size the
 unseen Strecha scenes come in) and the temple at 640 x 480. For each scale, every view pair of
 the calibrated scenes (as ``pis3r eval --pose-only`` takes them: neighbouring views and views
 three apart) is reconstructed with both photos resized by it (bicubic, the GT focal scaled with
-them, :func:`pis3r.eval.poses.evaluate_pose`): the per-pair table, then one line per scale with
+them, :func:`pis3r.eval.poses.evaluate_pose`): the per-pair table, then one line per setting with
 the medians and the counts of pairs more than 5 deg off, of focals more than 25 % off called
 determined and of wrong poses with no warning. Upscaled photos carry no detail the stored ones
 lack: this checks that pis3r's thresholds and working sizes follow the photo's size, not that
 more pixels help. ``--gains`` does the same for the exposure: each photo's values multiplied by
 the gain and quantised to 8 bits again (0.15: the temple's white object as dark as a dark one
-on its black turntable), so that an absolute intensity threshold shows. ``--only`` takes scene
+on its black turntable), so that an absolute intensity threshold shows. ``--zooms`` keeps only the
+centre of both photos (0.6: 60 % of each side), as a lens 1 / 0.6 times as long on the same camera
+would take them: the same focal in pixels over a narrower view (the unseen dark turntable object's
+focal is 5.2 times its photos' longest side, the temple's 2.4, the Strecha scenes' 0.9), so that a
+prior or a threshold tied to the field of view shows. ``--only`` takes scene
 names (``strecha-fountain-P11``) or pair names (``strecha-fountain-P11/7-10``), and also pair
 folders with GT cameras (the ScanNet pairs: ``--scales 0.95 1 1.05 1.1`` shows how much of a
 wide baseline's pose is luck).
@@ -24,6 +28,7 @@ wide baseline's pose is luck).
 from __future__ import annotations
 
 import argparse
+from itertools import product
 from pathlib import Path
 
 from pis3r.eval.cases import CaseSpec, discover_cases
@@ -46,28 +51,29 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 2.0, 3.0])
     parser.add_argument("--gains", type=float, nargs="+", default=[1.0], help="exposure factors (1: as stored)")
+    parser.add_argument("--zooms", type=float, nargs="+", default=[1.0],
+                        help="share of each side of both photos kept around the centre (1: the whole photos)")
     parser.add_argument("--crop", type=float, default=1.0, help="share of the reference kept (1: the whole photo)")
     parser.add_argument("--only", nargs="*", default=None,
                         help="scene or pair names, or pair folders with GT cameras (default: every calibrated scene)")
     parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=MATCHERS)
     args = parser.parse_args()
-    if any(factor <= 0 for factor in args.scales + args.gains):
-        parser.error("--scales, --gains: give positive factors")
+    if any(factor <= 0 for factor in args.scales + args.gains + args.zooms) or max(args.zooms) > 1:
+        parser.error("--scales, --gains, --zooms: give positive factors (--zooms at most 1)")
 
     specs = selected_cases(args.data, args.only)
     if not specs:
         parser.error(f"{args.data}: no calibrated scene{' of --only' if args.only else ''}")
     summaries = []
-    for scale in args.scales:
-        for gain in args.gains:
-            rows = [row for row in (evaluate_pose(spec, args.crop, args.matcher, scale, gain) for spec in specs)
-                    if row]
-            print(f"\nscale {scale:g}, gain {gain:g}\n{format_table(rows)}", flush=True)
-            summaries.append((scale, gain, medians(rows)))
-    print(f"\n{'scale':>5s} {'gain':>5s} {'pairs':>5s} {'rot °':>6s} {'dir °':>6s} {'>5°':>4s} "
+    for scale, gain, zoom in product(args.scales, args.gains, args.zooms):
+        rows = [row for row in (evaluate_pose(spec, args.crop, args.matcher, scale, gain, zoom) for spec in specs)
+                if row]
+        print(f"\nscale {scale:g}, gain {gain:g}, zoom {zoom:g}\n{format_table(rows)}", flush=True)
+        summaries.append((scale, gain, zoom, medians(rows)))
+    print(f"\n{'scale':>5s} {'gain':>5s} {'zoom':>5s} {'pairs':>5s} {'rot °':>6s} {'dir °':>6s} {'>5°':>4s} "
           f"{'focal >25% determined':>22s} {'wrong, no warning':>18s}")
-    for scale, gain, summary in summaries:
-        print(f"{scale:5g} {gain:5g} {summary['reconstructed']:2d}/{summary['pairs']:<2d} "
+    for scale, gain, zoom, summary in summaries:
+        print(f"{scale:5g} {gain:5g} {zoom:5g} {summary['reconstructed']:2d}/{summary['pairs']:<2d} "
               f"{summary['rotation_error_deg']:6.2f} {summary['translation_error_deg']:6.2f} {summary['failed']:4d} "
               f"{summary['wrongly_determined']:22d} {summary['silently_wrong']:18d}")
 

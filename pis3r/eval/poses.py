@@ -44,12 +44,13 @@ MISSING_TRANSLATION_DEG = 90.0
 
 
 def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0,
-                  gain: float = 1.0) -> dict | None:
+                  gain: float = 1.0, zoom: float = 1.0) -> dict | None:
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
-    GT cameras; with ``scale``, both photos resized by it first (bicubic, the GT focal with
-    them), and with ``gain``, their values multiplied by it and quantised to 8 bits again: the
-    same scenes at the sizes and exposures other cameras take them in
-    (``benchmarks/resized_poses.py``)."""
+    GT cameras; with ``zoom``, only the centre ``zoom`` of each side of both photos kept, with
+    ``scale``, both resized by it (bicubic, the GT focal with them), and with ``gain``, their
+    values multiplied by it and quantised to 8 bits again: the same scenes through the longer
+    lenses, at the sizes and exposures other cameras take them in
+    (``benchmarks/resized_poses.py``; :func:`as_taken`)."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
@@ -58,7 +59,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     if case.cameras is None:
         return None
     row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal * scale, "refused": ""}
-    reference, target = (as_taken(image, scale, gain) for image in (case.reference, case.target))
+    reference, target = (as_taken(image, scale, gain, zoom) for image in (case.reference, case.target))
     start = time.perf_counter()
     try:
         pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(reference, "ref"),
@@ -77,9 +78,16 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
             "determined": pair.focal_determined, "seconds": time.perf_counter() - start}
 
 
-def as_taken(image: np.ndarray, scale: float, gain: float) -> np.ndarray:
-    """``(H, W, 3)`` float ``image`` resized by ``scale`` (bicubic) and exposed ``gain`` times
-    as long, in 8-bit steps as a camera would store it (the same array where both are 1)."""
+def as_taken(image: np.ndarray, scale: float, gain: float, zoom: float = 1.0) -> np.ndarray:
+    """``(H, W, 3)`` float ``image`` as a lens ``1 / zoom`` times as long on the same camera
+    would take it (its centre ``zoom`` of each side: the focal in pixels unchanged, the field of
+    view narrower), resized by ``scale`` (bicubic) and exposed ``gain`` times as long, in 8-bit
+    steps as a camera would store it (the same array where all three are 1)."""
+    if zoom != 1.0:
+        height, width = image.shape[:2]
+        kept_height, kept_width = max(1, round(height * zoom)), max(1, round(width * zoom))
+        top, left = (height - kept_height) // 2, (width - kept_width) // 2
+        image = np.ascontiguousarray(image[top:top + kept_height, left:left + kept_width])
     if scale != 1.0:
         image = np.clip(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC), 0, 1)
     if gain != 1.0:
