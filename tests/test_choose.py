@@ -128,11 +128,11 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
     """The band's small copies find fewer SIFT inliers than the photos: left to themselves
     they would retry with ASIFT and test a pair matched unlike the stitch. The photos' own
     features and matches, found for that, are the stitch's: each photo is detected once."""
-    from pis3r.reconstruct import classical, pairs
+    from pis3r.reconstruct import classical, matching
 
     detected, band_detectors = [], []
-    original_detect, original_reconstruct = pairs.detect, classical.ClassicalReconstructor.reconstruct
-    monkeypatch.setattr(pairs, "detect", lambda image: detected.append(image.shape[:2]) or original_detect(image))
+    original_detect, original_reconstruct = matching.detect, classical.ClassicalReconstructor.reconstruct
+    monkeypatch.setattr(matching, "detect", lambda image: detected.append(image.shape[:2]) or original_detect(image))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
 
     def reconstruct(self, found):

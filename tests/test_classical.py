@@ -287,7 +287,7 @@ def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monke
     import threading
 
     import pis3r.reconstruct.classical as classical
-    from pis3r.reconstruct.pairs import PhotoFeatures
+    from pis3r.reconstruct.matching import PhotoFeatures
 
     _, _, ref_img, _, tgt_img, _ = analytic_pair
     photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt"), Photo(ref_img[:, ::-1].copy(), "flipped")]
@@ -317,7 +317,7 @@ def test_a_background_detection_that_fails_is_left_to_its_reader(analytic_pair, 
     import threading
 
     import pis3r.reconstruct.classical as classical
-    from pis3r.reconstruct.pairs import PhotoFeatures
+    from pis3r.reconstruct.matching import PhotoFeatures
 
     _, _, ref_img, _, tgt_img, _ = analytic_pair
     photos = [Photo(tgt_img, "broken"), Photo(ref_img, "ref")]

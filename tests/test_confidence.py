@@ -12,7 +12,7 @@ from pis3r.features import Matches
 from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, confident_pair, pair_confidence,
                                           pose_confidence, unreliable_warning)
 from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
-from pis3r.reconstruct.pairs import FEW_INLIERS
+from pis3r.reconstruct.matching import FEW_INLIERS
 from tests.conftest import REAL, needs_real_data
 from tests.test_self_calibration import cameras_of, general_pair
 

@@ -34,7 +34,7 @@ def test_a_pose_that_explains_more_of_the_other_matcher_s_matches_replaces_the_f
 
     from pis3r.errors import NotEnoughOverlapError
     from pis3r.reconstruct.hypotheses import HELD_OUT_MARGIN, REPLACED_SHARE, judged_matches
-    from pis3r.reconstruct.pairs import ConsistentMatches
+    from pis3r.reconstruct.matching import ConsistentMatches
 
     K = intrinsics(420.0, 480, 360)
     right = SimpleNamespace(R=rotation_y(-20.0), t=np.array([1.0, 0.0, 0.2]), K_a=K, K_b=K)
@@ -100,7 +100,7 @@ def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
     from types import SimpleNamespace
 
     from pis3r.reconstruct.hypotheses import judged_matches
-    from pis3r.reconstruct.pairs import SECOND_LOOK, ConsistentMatches
+    from pis3r.reconstruct.matching import SECOND_LOOK, ConsistentMatches
 
     K = intrinsics(420.0, 480, 360)
     chosen = SimpleNamespace(R=rotation_y(-20.0), t=np.array([1.0, 0.0, 0.2]), K_a=K, K_b=K)

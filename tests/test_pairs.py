@@ -14,7 +14,7 @@ from pis3r.reconstruct.confidence import pair_confidence
 from pis3r.reconstruct.geometry import fundamental
 from pis3r.reconstruct.focal import focal_hypotheses, focals_from_homography, plausibility_warning
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.pairs import PhotoFeatures, consistent_matches
+from pis3r.reconstruct.matching import PhotoFeatures, consistent_matches
 from tests.analytic import Plane, _texture, planes_scene, render, rotation_y
 from tests.conftest import REAL, needs_real_data
 
@@ -215,15 +215,15 @@ def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(
     """Views are registered to the reference two at a time; both may need its ASIFT."""
     import threading
 
-    import pis3r.reconstruct.pairs as pairs
+    import pis3r.reconstruct.matching as matching
 
     calls, started = [], threading.Barrier(2)
 
     def counted(gray):
         calls.append(gray.shape)
-        return pairs.detect(gray)
+        return matching.detect(gray)
 
-    monkeypatch.setattr(pairs, "detect_affine", counted)
+    monkeypatch.setattr(matching, "detect_affine", counted)
     photo = Photo(_texture("astronaut", 160), "ref.png")
     features = PhotoFeatures(photo)
     found = []

@@ -14,7 +14,7 @@ from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.focal import (DETERMINED_FACTOR, FOCAL_BOUND, FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval,
                                      focal_hypotheses, focal_interval)
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.pairs import FEW_INLIERS
+from pis3r.reconstruct.matching import FEW_INLIERS
 from pis3r.reconstruct.self_calibration import essential_fit
 from tests.analytic import planes_scene, render, two_view_cameras
 from tests.conftest import REAL, needs_real_data

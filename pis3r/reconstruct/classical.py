@@ -3,10 +3,10 @@
 
 Works offline on any machine. For the reference (view 0) and every other view:
 
-1. Geometry (:mod:`pis3r.reconstruct.pairs`): SIFT matches (ASIFT when too few agree),
-   MAGSAC++ fundamental matrix; the homography model for a rotation or a plane, else 3-D;
-   focal from ``--focal``, EXIF or self-calibration; the relative pose the epipolar
-   geometry supports.
+1. Geometry: SIFT matches (ASIFT when too few agree), MAGSAC++ fundamental matrix
+   (:mod:`pis3r.reconstruct.matching`); the homography model for a rotation or a plane, else
+   3-D; focal from ``--focal``, EXIF or self-calibration; the relative pose the epipolar
+   geometry supports (:mod:`pis3r.reconstruct.pairs`).
 2. A photo the reference does not place is paired with the photo it shares most with (a
    chain of any length); with three or more photos, the poses and focal of the 3-D pairs
    refined together (:mod:`pis3r.reconstruct.joint`: bundle adjustment over all their tracks).
@@ -37,8 +37,8 @@ from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
-from pis3r.reconstruct.pairs import (FEW_INLIERS, SECOND_LOOK, ConsistentMatches, PairGeometry, PhotoFeatures,
-                                     consistent_matches, estimate_pair)
+from pis3r.reconstruct.matching import FEW_INLIERS, SECOND_LOOK, ConsistentMatches, PhotoFeatures, consistent_matches
+from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 from pis3r.reconstruct.views import flows, homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
 from pis3r.scene import Deferred, DroppedView, Scene, View, compute_in_background

@@ -41,7 +41,8 @@ import numpy as np
 from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.pairs import FEW_INLIERS, PairGeometry
+from pis3r.reconstruct.matching import FEW_INLIERS
+from pis3r.reconstruct.pairs import PairGeometry
 
 # Resampled fits per pair, and the percentile of their rotation errors reported: one fit in
 # five may stray that far.

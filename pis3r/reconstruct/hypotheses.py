@@ -1,7 +1,7 @@
 """A second opinion on a wide baseline's matches (matcher ``auto``, issue 40).
 
 Where SIFT's matches are too few, SIFT's, ASIFT's and XFeat's are pooled
-(:func:`pis3r.reconstruct.pairs.consistent_matches`); ALIKED + LightGlue
+(:func:`pis3r.reconstruct.matching.consistent_matches`); ALIKED + LightGlue
 (:mod:`pis3r.learned_features`, three to five seconds a 1 MP pair) then matches the pair too,
 and the two sets are judged by the pose each gives (:func:`judged_matches`). Each matcher gets
 different wide baselines right (ScanNet 0737: the pool 14 deg off, ALIKED 1.2; 0726: the pool
@@ -35,7 +35,8 @@ from pis3r.features import Matches
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.focal import known_focal, partner_focal
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.pairs import FEW_INLIERS, ConsistentMatches, PairGeometry, PhotoFeatures, estimate_pair
+from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
+from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 
 # A later hypothesis replaces the first only where its pose explains this much more of the
 # first's matches than the first's pose explains of its own, each share taken against what a

@@ -22,7 +22,7 @@ FOCAL_RULES = ("calibrated", "prior")
 # few epipolar inliers), ``xfeat`` (XFeat + LighterGlue, about a second a pair), ``aliked``
 # (ALIKED + LightGlue at 1024 px, about six: :mod:`pis3r.learned_features`) or ``auto``: SIFT,
 # and where too few of its matches agree, SIFT's, ASIFT's and XFeat's pooled
-# (:func:`pis3r.reconstruct.pairs.consistent_matches`), then judged against ALIKED's by the
+# (:func:`pis3r.reconstruct.matching.consistent_matches`), then judged against ALIKED's by the
 # pose each gives (:func:`pis3r.reconstruct.hypotheses.judged_matches`). ALIKED is not pooled: added
 # to the pool of the three ScanNet pairs that need it, it moved their poses 4.4 / 3.3 / 14.3 deg
 # to 53.7 / 2.3 / 9.1 deg, and alone it swaps which pairs it gets right (0737 1.2 deg, 0726 90

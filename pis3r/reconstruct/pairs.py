@@ -1,16 +1,10 @@
-"""One pair's two-view geometry, without depth: consistent matches, the model that renders
-it, the focal and the relative pose exported for it.
+"""One pair's two-view geometry, without depth: from its consistent matches
+(:mod:`pis3r.reconstruct.matching`), the model that renders it, the focal and the relative pose
+exported for it.
 
-1. Matches: SIFT/RootSIFT, MAGSAC++ fundamental matrix. With fewer than ``FEW_INLIERS``
-   epipolar inliers (wide baselines foreshorten surfaces beyond what SIFT matches), SIFT's,
-   ASIFT's and XFeat + LighterGlue's matches (:mod:`pis3r.learned_features`) are pooled
-   (matcher ``auto``; :mod:`pis3r.reconstruct.hypotheses` then weighs them against ALIKED's),
-   or ASIFT's replace SIFT's where more agree (matcher ``sift``). ASIFT and XFeat detect on
-   copies at most 640 px long: their matches are moved to where their patches correlate on the
-   photos themselves (:func:`pis3r.subpixel.refine_matches`).
-2. Model: if one homography explains the inliers (parallax level below the rotation
+1. Model: if one homography explains the epipolar inliers (parallax level below the rotation
    threshold, or ``PLANAR_FRACTION`` of them), the pair is rendered with it; else 3-D.
-3. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
+2. Rotation or baseline: a homography pair is a rotation when a pure rotation (focal from
    the homography, Brown–Lowe, refined; an EXIF focal is checked against it) transfers its
    points about as well as the homography; it is rendered as the homography's plane nearest
    that rotation, or as the rotation itself where the plane's translation is negligible.
@@ -20,9 +14,9 @@ it, the focal and the relative pose exported for it.
    prior) only where all but a few inliers lie on the plane; at a rotation's parallax level,
    where fewer than ``CLEAR_OFF_PLANE`` of them lie clearly off it
    (:func:`pis3r.reconstruct.geometry.clear_parallax`).
-4. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
+3. 3-D pairs: essential matrix + cheirality from a few starting focals, then pose and focal
    refined jointly over all inliers (robust Sampson, weak prior).
-5. Every focal carries its interval (:class:`pis3r.reconstruct.focal.FocalInterval`): the
+4. Every focal carries its interval (:class:`pis3r.reconstruct.focal.FocalInterval`): the
    focals the matches cannot tell apart. Where it is wide, the focal is not
    "self-calibrated" and comes with a warning (:mod:`pis3r.reconstruct.self_calibration`).
 """
@@ -30,7 +24,6 @@ it, the focal and the relative pose exported for it.
 from __future__ import annotations
 
 import hashlib
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
@@ -39,25 +32,13 @@ import numpy as np
 
 from pis3r.camera import rotation_angle_deg
 from pis3r.errors import NotEnoughOverlapError
-from pis3r.features import AFFINE_DISTINCT_SHARE, Features, Matches, detect, detect_affine, match, to_gray_u8
-from pis3r.io import Photo
-from pis3r.learned_features import (LEARNED_NETWORKS, SECOND_LOOK_SIDE, LearnedKeypoints, learned_keypoints,
-                                    learned_matches)
+from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
-from pis3r.reconstruct.options import DEFAULT_MATCHER
+from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
 from pis3r.reconstruct.self_calibration import essential_fit, rotation_fit
-from pis3r.scene import Deferred
-from pis3r.subpixel import refine_matches
 
-# Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
-# SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
-FEW_INLIERS = 50
-# ASIFT's matches, or the pooled ones, replace SIFT's only with at least this many epipolar
-# inliers: among their hundreds of matches, a dozen agree on some fundamental matrix by chance
-# (LighterGlue matches noise with noise).
-MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 # Share of epipolar inliers one homography must explain for the pair to count as planar.
 PLANAR_FRACTION = 0.9
 # At a rotation's parallax level, a plane seen with a baseline fixes the focal only where this
@@ -70,118 +51,6 @@ CLEAR_OFF_PLANE = 0.04
 PLANE_POSE_SHARE = 0.5
 # |t| / plane distance below which a rotation's homography is rendered as the rotation.
 ROTATION_TRANSLATION = 0.02
-
-
-class PhotoFeatures:
-    """A photo with its ``(H, W)`` uint8 luminance (:func:`pis3r.features.to_gray_u8`), its SIFT
-    features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's
-    and its XFeat keypoints."""
-
-    def __init__(self, photo: Photo, max_features: int | None = None) -> None:
-        self.photo = photo
-        # SIFT, ASIFT, match refinement and vanishing points all read this luminance: converted
-        # once, not by each (0.07-0.25 s per 12 MP photo).
-        self.gray = to_gray_u8(photo.pixels)
-        self.sift: Features = detect(self.gray) if max_features is None else detect(self.gray, max_features)
-        # Once, behind a lock: the pairs of several views with the reference run two at a time,
-        # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
-        self._affine = Deferred(lambda: detect_affine(self.gray))
-        self._learned: dict[tuple[str, int | None], Deferred] = {}
-
-    @property
-    def affine(self) -> Features:
-        return self._affine.value()
-
-    def learned(self, network: str, max_side: int | None = None) -> LearnedKeypoints:
-        """The ``network``'s keypoints (:data:`pis3r.learned_features.LEARNED_NETWORKS`), on a copy
-        at most ``max_side`` long (the network's own size by default), found once."""
-        # XFeat sees the luminance, ALIKED the colours it was trained on.
-        image = self.gray if network == "xfeat" else self.photo.pixels
-        found = self._learned.setdefault((network, max_side),
-                                         Deferred(lambda: learned_keypoints(image, network, max_side)))
-        return found.value()
-
-
-@dataclass(frozen=True)
-class ConsistentMatches:
-    """``matches`` between two photos, ``inliers`` ``(N,)`` bool: those a MAGSAC++
-    fundamental matrix keeps; ``detector``: ``SIFT``, ``ASIFT``, ``XFeat``, ``ALIKED``,
-    ``pooled`` (SIFT's, ASIFT's and XFeat's together) or ``SECOND_LOOK`` (ALIKED's at
-    :data:`pis3r.learned_features.SECOND_LOOK_SIDE`). ``rivals_apart_deg``: where another
-    matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
-    neither pose explained clearly more of the other's, the angle between their rotations; else 0."""
-
-    matches: Matches
-    inliers: np.ndarray
-    detector: str
-    rivals_apart_deg: float = 0.0
-
-
-# ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).
-SECOND_LOOK = "ALIKED, second look"
-
-
-def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
-                       strongest: int | None = None, matcher: str = DEFAULT_MATCHER) -> ConsistentMatches:
-    """Matches of ``a`` in ``b`` and their epipolar inliers.
-
-    ``detector`` ``auto`` follows ``matcher`` (:data:`pis3r.reconstruct.options.MATCHERS`):
-    SIFT's, on each photo's ``strongest`` features if given, then on all of them, until
-    ``FEW_INLIERS`` agree; where fewer do, ``sift`` takes ASIFT's and ``auto`` SIFT's, ASIFT's
-    and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat`` and
-    ``aliked`` take that network's alone from the start. ``SIFT`` (on the ``strongest`` if
-    given), ``ASIFT``, ``XFeat``, ``ALIKED``, ``pooled`` or ``SECOND_LOOK``: those alone."""
-    w, h = a.photo.width, a.photo.height
-    distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
-
-    def affine() -> ConsistentMatches:
-        found = _epipolar(match(a.affine, b.affine, distinct_px=distinct_px, approximate=True), w, h, "ASIFT")
-        # ASIFT's points are found on small copies: put the inliers back on the photos' pixels.
-        refined = refine_matches(a.gray, b.gray, found.matches.subset(found.inliers))
-        pts_b = found.matches.pts_b.copy()
-        pts_b[found.inliers] = refined.pts_b
-        return replace(found, matches=Matches(found.matches.pts_a, pts_b))
-
-    def learned(network: str, max_side: int | None = None) -> Matches:
-        return learned_matches(a.gray, b.gray, a.learned(network, max_side), b.learned(network, max_side),
-                               network).matches
-
-    def pooled(sift: Matches) -> ConsistentMatches:
-        # Each detector finds some of a wide baseline's correspondences; wrong ones agree with
-        # no geometry, right ones with the same: together they pin the pose and the focal
-        # that no one of them does (ScanNet's pairs: focal 0.73-1.15 x the GT's, against
-        # 0.40-4.8 x from any one of them).
-        # XFeat (torch's import included, about 2 s the first time) runs while ASIFT detects.
-        with ThreadPoolExecutor(1) as pool:
-            xfeat = pool.submit(learned, "xfeat")
-            found = [sift, affine().matches, xfeat.result()]
-        return _epipolar(Matches.joined(found), w, h, "pooled")
-
-    if detector == "ASIFT":
-        return affine()
-    if detector == SECOND_LOOK:
-        return _epipolar(learned("aliked", SECOND_LOOK_SIDE), w, h, SECOND_LOOK)
-    for network in LEARNED_NETWORKS.values():
-        if detector == network.label or (detector == "auto" and matcher == network.name):
-            return _epipolar(learned(network.name), w, h, network.label)
-    sift_a, sift_b = (a.sift, b.sift) if strongest is None else (a.sift.strongest(strongest), b.sift.strongest(strongest))
-    if detector == "pooled":
-        return pooled(match(sift_a, sift_b))
-    found = _epipolar(match(sift_a, sift_b), w, h, "SIFT")
-    if detector == "SIFT" or found.inliers.sum() >= FEW_INLIERS:
-        return found
-    if sift_a is not a.sift or sift_b is not b.sift:
-        found = _epipolar(match(a.sift, b.sift), w, h, "SIFT")
-        if found.inliers.sum() >= FEW_INLIERS:
-            return found
-    retry = pooled(found.matches) if matcher == "auto" else affine()
-    count = retry.inliers.sum()
-    return retry if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
-
-
-def _epipolar(matches: Matches, width: int, height: int, detector: str) -> ConsistentMatches:
-    _, inliers = geometry.fundamental(matches, width, height)
-    return ConsistentMatches(matches, inliers, detector)
 
 
 @dataclass(frozen=True)
