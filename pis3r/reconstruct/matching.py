@@ -73,7 +73,7 @@ class ConsistentMatches:
     ``pooled`` (SIFT's, ASIFT's and XFeat's together) or ``SECOND_LOOK`` (ALIKED's at
     :data:`pis3r.learned_features.SECOND_LOOK_SIDE`). ``rivals_apart_deg``: where another
     matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
-    neither pose explained clearly more of the other's, the angle between their rotations; else 0."""
+    neither pose explained clearly more of both, the angle between their rotations; else 0."""
 
     matches: Matches
     inliers: np.ndarray

@@ -26,7 +26,7 @@ FOCAL_RULES = ("calibrated", "prior")
 # pose each gives (:func:`pis3r.reconstruct.hypotheses.judged_matches`). ALIKED is not pooled: added
 # to the pool of the three ScanNet pairs that need it, it moved their poses 4.4 / 3.3 / 14.3 deg
 # to 53.7 / 2.3 / 9.1 deg, and alone it swaps which pairs it gets right (0737 1.2 deg, 0726 90
-# deg); judged, each pair keeps the pose that explains more of the other set's matches.
+# deg); judged, each pair keeps the pose that explains more of both sets' matches.
 MATCHERS = ("auto", "sift", "xfeat", "aliked")
 DEFAULT_MATCHER = "auto"
 # Which features made a pair's matches: ``auto``, the matcher's rule; ``SIFT``, ``ASIFT``,
