@@ -240,6 +240,23 @@ def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(
     assert len(calls) == 1 and found[0] is found[1]
 
 
+def test_a_photo_s_learned_keypoints_are_found_once_per_size(monkeypatch):
+    """ALIKED runs at its own size and at the second look's: the network's own size asked by
+    name is the default copy, not a second run."""
+    import pis3r.reconstruct.matching as matching
+    from pis3r.learned_features import LEARNED_NETWORKS, SECOND_LOOK_SIDE
+
+    calls = []
+    monkeypatch.setattr(matching, "learned_keypoints",
+                        lambda image, network, side: calls.append((network, side)) or object())
+    features = PhotoFeatures(Photo(_texture("astronaut", 160), "ref.png"))
+    default = features.learned("aliked")
+    assert features.learned("aliked", LEARNED_NETWORKS["aliked"].max_side) is default
+    assert features.learned("aliked", SECOND_LOOK_SIDE) is not default
+    assert features.learned("aliked", SECOND_LOOK_SIDE) is features.learned("aliked", SECOND_LOOK_SIDE)
+    assert calls == [("aliked", LEARNED_NETWORKS["aliked"].max_side), ("aliked", SECOND_LOOK_SIDE)]
+
+
 def _shifted_crops(count: int = 2) -> list[PhotoFeatures]:
     """Features of overlapping 320 px crops of one picture, 120 px apart."""
     from skimage import data

@@ -39,7 +39,7 @@ MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 class PhotoFeatures:
     """A photo with its ``(H, W)`` uint8 luminance (:func:`pis3r.features.to_gray_u8`), its SIFT
     features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's
-    and its XFeat keypoints."""
+    and its learned networks' keypoints (each size once)."""
 
     def __init__(self, photo: Photo, max_features: int | None = None) -> None:
         self.photo = photo
@@ -50,7 +50,7 @@ class PhotoFeatures:
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))
-        self._learned: dict[tuple[str, int | None], Deferred] = {}
+        self._learned: dict[tuple[str, int], Deferred] = {}
 
     @property
     def affine(self) -> Features:
@@ -61,8 +61,8 @@ class PhotoFeatures:
         at most ``max_side`` long (the network's own size by default), found once."""
         # XFeat sees the luminance, ALIKED the colours it was trained on.
         image = self.gray if network == "xfeat" else self.photo.pixels
-        found = self._learned.setdefault((network, max_side),
-                                         Deferred(lambda: learned_keypoints(image, network, max_side)))
+        side = max_side or LEARNED_NETWORKS[network].max_side
+        found = self._learned.setdefault((network, side), Deferred(lambda: learned_keypoints(image, network, side)))
         return found.value()
 
 
