@@ -111,8 +111,6 @@ def test_given_focal_is_used(analytic_pair):
 
 
 def test_pure_rotation_uses_the_homography_model():
-    from skimage import data
-
     from tests.analytic import rotation_y
     from pis3r.camera import Camera, intrinsics
 

@@ -4,7 +4,6 @@ import json
 
 import numpy as np
 import pycolmap
-import pytest
 
 from pis3r.colmap import colmap_quaternion, colmap_text_files
 

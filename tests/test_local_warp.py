@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 import pis3r
 from pis3r.camera import Camera, intrinsics
