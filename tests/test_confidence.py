@@ -48,6 +48,26 @@ def test_a_focal_measured_on_an_unreliable_pose_is_not_presented_as_measured():
     assert confident_pair(joint)[0] is joint
 
 
+def test_a_focal_another_matcher_s_pose_fits_as_well_is_not_presented_as_measured():
+    """A rival pose (pis3r.reconstruct.hypotheses) fitted at a focal outside the pair's interval
+    widens it to that focal: the matches cannot rule it out."""
+    a, b, _, _ = general_pair()
+    pair = cameras_of(a, b)
+    focal = float(pair.K_a[0, 0])
+    near = pair.focal_contested((focal * 1.01,))
+    assert near.focal_determined and near.focal_source == pair.focal_source and near.warnings == pair.warnings
+    contested = pair.focal_contested((1.6 * focal, 1.2 * focal))
+    assert not contested.focal_determined and contested.focal_interval.low == pair.focal_interval.low
+    assert contested.focal_interval.high == pytest.approx(1.6 * focal) and np.array_equal(contested.R, pair.R)
+    assert contested.focal_source.startswith("the matches' minimum, which another matcher's pose contests")
+    [warning] = [line for line in contested.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert f"{1.2 * focal:.0f} and {1.6 * focal:.0f} px" in warning and "--focal" in warning
+    assert pair_confidence(contested).focal_deg > pair_confidence(pair).focal_deg
+    # A focal given is no measurement the rivals could contest.
+    known = cameras_of(a, b, focal=420.0)
+    assert known.focal_contested((900.0,)) is known
+
+
 def test_few_or_scattered_matches_make_the_pose_unreliable():
     a, b, _, _ = general_pair()
     pair = cameras_of(a, b, focal=420.0)

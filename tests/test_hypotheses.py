@@ -57,7 +57,8 @@ def test_a_pose_that_explains_more_of_every_matcher_s_matches_replaces_the_first
     close = hypothesis(right, int(60 * JUDGE_MARGIN) - 30, 0, "ALIKED")
     kept = judged_matches([pooled, close], judge, 480, 360)
     assert kept.matches is pooled.matches and kept.inliers is pooled.inliers and kept.detector == "pooled"
-    assert kept.rivals_apart_deg == pytest.approx(angle_deg(right.R @ wrong.R.T))
+    assert kept.rivals_apart_deg == pytest.approx(angle_deg(right.R @ wrong.R.T)) and kept.rival_focals == (420.0,)
+    assert judged.rival_focals == ()
     # A hypothesis with no pose is passed over.
     poses["pooled"] = None
 
@@ -98,6 +99,8 @@ def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
                             checks=[hypothesis(other, 400, 3, SECOND_LOOK)])
     assert looked.detector == "pooled" and looked.matches is pooled.matches and looked.inliers is pooled.inliers
     assert alone.rivals_apart_deg == 0.0 and looked.rivals_apart_deg == pytest.approx(angle_deg(other.R @ chosen.R.T))
+    # ALIKED's pose, the same as the winner's, is a rival too: its focal is one the matches allow.
+    assert alone.rival_focals == (420.0,) and looked.rival_focals == (420.0, 420.0)
     # One that explains little is no rival.
     faint = judged_matches([pooled, aliked], judge, 480, 360,
                            checks=[hypothesis(other, 20, 3, SECOND_LOOK)])

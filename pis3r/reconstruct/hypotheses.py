@@ -93,11 +93,14 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     and the pose's confidence, measured on resampled inliers, would then hold a wrong pose
     steady (templeRing 13-25, 88 deg off: 3 deg where it had been 13). The detector named is the
     winning hypothesis's; where no pose won by ``JUDGE_MARGIN``, the largest angle between the
-    rotations of those within it is ``rivals_apart_deg``.
+    winner's rotation and those within it is ``rivals_apart_deg``, and their reference focals are
+    ``rival_focals``: a focal another matcher's pose fits about as well at is one the matches
+    cannot rule out (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`).
 
     ``checks`` never win and add no matches: each is scored with the winner on all the
     matches, its own too, and where it explains at least ``1 / JUDGE_MARGIN`` as much, the
-    angle between its pose and the winner's counts in ``rivals_apart_deg`` as well."""
+    angle between its pose and the winner's counts in ``rivals_apart_deg`` as well, its focal in
+    ``rival_focals``."""
     everything = Matches.joined([hypothesis.matches for hypothesis in hypotheses])
     reach = JUDGE_DISTANCE_PX * geometry.pixel_scale(width, height)
     posed = [(hypothesis, _pose(hypothesis, judge)) for hypothesis in hypotheses]
@@ -108,18 +111,20 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     for candidate in scored[1:]:
         if candidate.score > JUDGE_MARGIN * best.score:
             best = candidate
-    apart = max(rotation_angle_deg(candidate.pose.R @ best.pose.R.T) for candidate in scored
-                if JUDGE_MARGIN * candidate.score >= best.score)
+    rivals = [candidate.pose for candidate in scored
+              if candidate is not best and JUDGE_MARGIN * candidate.score >= best.score]
     if checks:
         with_checks = Matches.joined([everything, *(check.matches for check in checks)])
         winner = _judged(best.hypothesis, best.pose, with_checks, reach)
         for check in checks:
             pose = _pose(check, judge)
             if pose is not None and JUDGE_MARGIN * _judged(check, pose, with_checks, reach).score >= winner.score:
-                apart = max(apart, rotation_angle_deg(pose.R @ best.pose.R.T))
+                rivals.append(pose)
+    apart = max([0.0] + [rotation_angle_deg(pose.R @ best.pose.R.T) for pose in rivals])
+    focals = tuple(float(pose.K_a[0, 0]) for pose in rivals)
     if best.hypothesis is hypotheses[0]:
-        return replace(hypotheses[0], rivals_apart_deg=apart)
-    return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart)
+        return replace(hypotheses[0], rivals_apart_deg=apart, rival_focals=focals)
+    return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart, focals)
 
 
 def _pose(hypothesis: ConsistentMatches, judge: Callable[[ConsistentMatches], PairGeometry]) -> PairGeometry | None:

@@ -73,12 +73,14 @@ class ConsistentMatches:
     ``pooled`` (SIFT's, ASIFT's and XFeat's together) or ``SECOND_LOOK`` (ALIKED's at
     :data:`pis3r.learned_features.SECOND_LOOK_SIDE`). ``rivals_apart_deg``: where another
     matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
-    neither pose explained clearly more of both, the angle between their rotations; else 0."""
+    neither pose explained clearly more of both, the angle between their rotations; else 0.
+    ``rival_focals``: the reference focals (px) those rival poses were fitted at."""
 
     matches: Matches
     inliers: np.ndarray
     detector: str
     rivals_apart_deg: float = 0.0
+    rival_focals: tuple[float, ...] = ()
 
 
 # ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).

@@ -117,6 +117,28 @@ class PairGeometry:
                        warnings=(*self.warnings, focal_warning(float(self.K_a[0, 0]), source, interval, why)))
 
 
+    def focal_contested(self, rival_focals: tuple[float, ...]) -> PairGeometry:
+        """This pair with its focal's interval widened to the reference focals of rival poses (those
+        of other matchers' matches that explain them about as well, :mod:`pis3r.reconstruct.hypotheses`):
+        a focal another geometry fits as well at is one the matches cannot rule out (the crop
+        protocol's ScanNet 0722: the pooled matches pin 656-735 px, ALIKED's pose fits 1027-1425,
+        GT 1161). Where that leaves the focal undetermined, it is no longer presented as measured
+        and a warning says so. A known focal's pair is returned as it is."""
+        interval = self.focal_interval
+        if interval is None or interval.low == interval.high:
+            return self
+        for focal in rival_focals:
+            interval = interval.spanning(focal)
+        focal = float(self.K_a[0, 0])
+        if interval.determined(focal) or not self.focal_determined:
+            return replace(self, focal_interval=interval)
+        source = f"the matches' minimum, which another matcher's pose contests ({self.focal_source.split(' (', 1)[-1]}"
+        why = "other matchers' poses explain the matches about as well at " + " and ".join(
+            f"{rival:.0f}" for rival in sorted(rival_focals)) + " px"
+        return replace(self, focal_interval=interval, focal_source=source,
+                       warnings=(*self.warnings, focal_warning(focal, source, interval, why)))
+
+
 def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, focal_ref: float | None,
                   focal_other: float | None, known_source: str = "", focal_is_final: bool = False,
                   model: str = "auto", focal_rule: str = "calibrated",
@@ -159,8 +181,9 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
                             estimator or ("essential" if model == "3d" else "homography"), found.rivals_apart_deg)
         # A focal measured on a geometry that few matches support is no measurement (a ScanNet
         # pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
-        return pair.focal_unmeasured("on too few of them", "too few matches agree") if few and pair.focal_measured \
-            else pair
+        if few and pair.focal_measured:
+            return pair.focal_unmeasured("on too few of them", "too few matches agree")
+        return pair.focal_contested(found.rival_focals)
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
