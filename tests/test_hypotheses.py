@@ -107,6 +107,25 @@ def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
     assert faint.rivals_apart_deg == 0.0 and faint.detector == "pooled"
 
 
+def test_the_rivals_focals_reach_the_pair_s_focal_interval():
+    """The focals of the poses that rivalled the chosen matches (ConsistentMatches.rival_focals)
+    reach the pair's geometry: its interval spans them, its focal and pose stay."""
+    from dataclasses import replace
+
+    from pis3r.reconstruct.matching import PhotoFeatures, consistent_matches
+    from pis3r.reconstruct.pairs import estimate_pair
+    from tests.test_self_calibration import general_pair
+
+    a, b, _, _ = general_pair()
+    ref, other = PhotoFeatures(a), PhotoFeatures(b)
+    found = consistent_matches(ref, other, "SIFT")
+    alone = estimate_pair(ref, other, found, None, None)
+    contested = estimate_pair(ref, other, replace(found, rival_focals=(700.0,)), None, None)
+    assert alone.focal_determined and not contested.focal_determined
+    assert contested.focal_interval.high == 700.0 and contested.K_a[0, 0] == alone.K_a[0, 0]
+    assert np.array_equal(contested.R, alone.R)
+
+
 @pytest.mark.slow
 @needs_real_data
 def test_a_wide_baseline_the_pooled_matches_get_wrong_takes_aliked_s_pose_judged_on_both():

@@ -22,7 +22,10 @@ degrees of rotation, from two independent sources:
   both, how far apart the two poses' rotations are: independent matchers that settle on
   different geometries leave the camera in doubt, however steady each one's own matches hold
   it (a dark turntable pair: the pool 65 deg off and steady to 1.5 deg under resampling,
-  ALIKED's 8 deg off, their scores within 5 %).
+  ALIKED's 8 deg off, their scores within 5 %). The focals those rival poses were fitted at
+  widen the focal's interval too (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`),
+  and so ``focal_deg``: the angle alone rested on luck where the matchers disagree on the focal
+  more than on the rotation (the crop protocol's ScanNet 0722).
 
 The camera is unreliable when any exceeds ``UNRELIABLE_ROTATION_DEG`` or fewer than
 ``FEW_INLIERS`` matches support it; the stitch then says so in one warning
