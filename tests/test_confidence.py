@@ -11,7 +11,7 @@ import pis3r
 from pis3r.features import Matches
 from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, confident_pair, pair_confidence,
                                           pose_confidence, unreliable_warning)
-from pis3r.reconstruct.focal import UNDETERMINED_FOCAL
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL, FocalInterval, focal_warning
 from pis3r.reconstruct.matching import FEW_INLIERS
 from tests.conftest import REAL, needs_real_data
 from tests.test_self_calibration import cameras_of, general_pair
@@ -63,6 +63,14 @@ def test_a_focal_another_matcher_s_pose_fits_as_well_is_not_presented_as_measure
     [warning] = [line for line in contested.warnings if line.startswith(UNDETERMINED_FOCAL)]
     assert f"{1.2 * focal:.0f} and {1.6 * focal:.0f} px" in warning and "--focal" in warning
     assert pair_confidence(contested).focal_deg > pair_confidence(pair).focal_deg
+    # A focal the matches already left loose: its one warning gives the widened range.
+    loose_interval = FocalInterval(0.8 * focal, 1.3 * focal)
+    loose = replace(pair, focal_interval=loose_interval, focal_source="matches and prior together", warnings=(
+        focal_warning(focal, "matches and prior together", loose_interval, "the matches fit a range of focals"),))
+    widened = loose.focal_contested((2.0 * focal,))
+    [warning] = [line for line in widened.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert f"from {0.8 * focal:.0f} to {2.0 * focal:.0f} px" in warning and widened.focal_source == loose.focal_source
+    assert loose.focal_contested((1.1 * focal,)) is loose
     # A focal given is no measurement the rivals could contest.
     known = cameras_of(a, b, focal=420.0)
     assert known.focal_contested((900.0,)) is known

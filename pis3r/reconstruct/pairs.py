@@ -35,7 +35,8 @@ from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
-from pis3r.reconstruct.focal import FOCAL_EVIDENCE, FocalInterval, focal_hypotheses, focal_warning
+from pis3r.reconstruct.focal import (FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval, focal_hypotheses,
+                                     focal_warning)
 from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
 from pis3r.reconstruct.self_calibration import essential_fit, rotation_fit
 
@@ -122,21 +123,29 @@ class PairGeometry:
         of other matchers' matches that explain them about as well, :mod:`pis3r.reconstruct.hypotheses`):
         a focal another geometry fits as well at is one the matches cannot rule out (the crop
         protocol's ScanNet 0722: the pooled matches pin 656-735 px, ALIKED's pose fits 1027-1425,
-        GT 1161). Where that leaves the focal undetermined, it is no longer presented as measured
-        and a warning says so. A known focal's pair is returned as it is."""
+        GT 1161). Where that leaves the focal undetermined, it is no longer presented as measured,
+        and the one focal warning gives the widened range and the rivals' focals. A known focal's
+        pair is returned as it is."""
         interval = self.focal_interval
         if interval is None or interval.low == interval.high:
             return self
         for focal in rival_focals:
             interval = interval.spanning(focal)
         focal = float(self.K_a[0, 0])
-        if interval.determined(focal) or not self.focal_determined:
+        if interval == self.focal_interval:
+            return self
+        if interval.determined(focal):
             return replace(self, focal_interval=interval)
-        source = f"the matches' minimum, which another matcher's pose contests ({self.focal_source.split(' (', 1)[-1]}"
         why = "other matchers' poses explain the matches about as well at " + " and ".join(
             f"{rival:.0f}" for rival in sorted(rival_focals)) + " px"
+        if self.focal_determined:
+            estimator = self.focal_source.split(' (', 1)[-1]
+            source = f"the matches' minimum, which another matcher's pose contests ({estimator}"
+        else:
+            source, why = self.focal_source, f"the matches leave it loose, and {why}"
+        kept = tuple(line for line in self.warnings if not line.startswith(UNDETERMINED_FOCAL))
         return replace(self, focal_interval=interval, focal_source=source,
-                       warnings=(*self.warnings, focal_warning(focal, source, interval, why)))
+                       warnings=(*kept, focal_warning(focal, source, interval, why)))
 
 
 def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, focal_ref: float | None,
