@@ -113,10 +113,9 @@ class PairGeometry:
         focal and the pose stay as they are."""
         lenses = FocalInterval.of_lenses(*self.reference_size)
         interval = self.focal_interval.spanning(lenses.low).spanning(lenses.high)
-        source = f"the matches' minimum, {on_what} ({self.focal_source.split(' (', 1)[-1]}"
+        source = self._minimum_source(on_what)
         return replace(self, focal_interval=interval, focal_source=source,
                        warnings=(*self.warnings, focal_warning(float(self.K_a[0, 0]), source, interval, why)))
-
 
     def focal_contested(self, rival_focals: tuple[float, ...]) -> PairGeometry:
         """This pair with its focal's interval widened to the reference focals of rival poses (those
@@ -129,23 +128,27 @@ class PairGeometry:
         interval = self.focal_interval
         if interval is None or interval.low == interval.high:
             return self
-        for focal in rival_focals:
-            interval = interval.spanning(focal)
-        focal = float(self.K_a[0, 0])
+        for rival in rival_focals:
+            interval = interval.spanning(rival)
         if interval == self.focal_interval:
             return self
+        focal = float(self.K_a[0, 0])
         if interval.determined(focal):
             return replace(self, focal_interval=interval)
         why = "other matchers' poses explain the matches about as well at " + " and ".join(
             f"{rival:.0f}" for rival in sorted(rival_focals)) + " px"
         if self.focal_determined:
-            estimator = self.focal_source.split(' (', 1)[-1]
-            source = f"the matches' minimum, which another matcher's pose contests ({estimator}"
+            source = self._minimum_source("which another matcher's pose contests")
         else:
             source, why = self.focal_source, f"the matches leave it loose, and {why}"
         kept = tuple(line for line in self.warnings if not line.startswith(UNDETERMINED_FOCAL))
         return replace(self, focal_interval=interval, focal_source=source,
                        warnings=(*kept, focal_warning(focal, source, interval, why)))
+
+    def _minimum_source(self, how: str) -> str:
+        """The source of a focal that is only the matches' minimum, ``how`` (why it is no
+        measurement), naming the estimator the measured focal's source named."""
+        return f"the matches' minimum, {how} ({self.focal_source.split(' (', 1)[-1]}"
 
 
 def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, focal_ref: float | None,
