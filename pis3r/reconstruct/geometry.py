@@ -42,6 +42,21 @@ def pixel_scale(width: int, height: int) -> float:
     return float(np.hypot(width, height) / np.hypot(1024, 768))
 
 
+# Where poses are scored by how many matches they explain (pis3r.reconstruct.hypotheses and
+# pis3r.reconstruct.focal_profile), a match counts up to this Sampson distance (px of a 1024 x 768
+# photo).
+MSAC_REACH_PX = 2.0
+
+
+def msac_score(distances: np.ndarray, width: int, height: int) -> tuple[float, np.ndarray]:
+    """``(score, within (N,) bool)`` of matches at Sampson ``distances`` ``(N,)`` (px, signed;
+    NaN: none) from a pose, on a ``width x height`` reference: MSAC, ``1 - (d / reach)^2`` summed
+    over those ``within`` the reach, ``MSAC_REACH_PX`` at that size."""
+    reach = MSAC_REACH_PX * pixel_scale(width, height)
+    distance = np.abs(np.nan_to_num(distances, nan=np.inf))
+    return float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)), distance < reach
+
+
 def fundamental(matches: Matches, width: int, height: int) -> tuple[np.ndarray | None, np.ndarray]:
     """MAGSAC++ fundamental matrix ``(3, 3)`` (or None) and its inlier mask ``(N,)``."""
     if len(matches) < 8:

@@ -18,6 +18,12 @@ hypothesis it won on the dark turntable pair with a wrong pose that passed as re
 its own pose explains about as much, the angle between the two is a rival's. ScanNet 0758
 resized by 0.9 (6.6 deg off) and 0737 by 1.05 (29.7 deg off, on ALIKED's matches) held steady
 under resampling and passed as reliable without it.
+
+Each matcher's pose fixes its own focal, and on wide baselines they disagree by tens of percent.
+So first, where no focal is known, all three sets of matches together draw the focal profile
+(:mod:`pis3r.reconstruct.focal_profile`). Where its peak is sharp, that is the focal, the pair's
+matches are all of them with the inliers of the profile's essential matrix at it, and the pool's,
+ALIKED's and the second look's own poses, each fitted at that focal, only check it.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ from pis3r.errors import Pis3rError
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.focal import known_focal, partner_focal
+from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, focal_profile
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
 from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
@@ -43,8 +50,8 @@ from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 # ScanNet pairs, Herz-Jesus 0-7, two temple pairs); where the pooled one was wrong, ALIKED's
 # explained 1.9-2.4 x as much (ScanNet 0737, fountain 0-10).
 JUDGE_MARGIN = 1.25
-# A match counts for a pose up to this Sampson distance (px of a 1024 x 768 photo).
-JUDGE_DISTANCE_PX = 2.0
+# The detector named where every matcher's matches, at the focal they fix, give the pose.
+EVERY_MATCHER = "every matcher"
 
 
 class _Judged(NamedTuple):
@@ -65,15 +72,32 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
     matcher is ``auto`` (``options``) and SIFT's were too few, :func:`judged_matches` of it and
     the ``alternative`` matches (ALIKED's), checked against the ``second_look``'s (ALIKED's at a
     second size), each hypothesis's pose fitted at the focals the pair knows (the flag, EXIF),
-    with ``remember`` (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo)."""
+    with ``remember`` (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo). Where the pair
+    knows none and all their matches' focal profile is sharp, the judged hypothesis is all of them
+    (``EVERY_MATCHER``, with the profile as ``focal_profile``), those three its checks, every
+    pose at the profile's focal (module docstring)."""
     if (detector, options.matcher) != ("auto", "auto") or (found.detector == "SIFT"
                                                             and found.inliers.sum() >= FEW_INLIERS):
         return found
     focal_ref, source = known_focal(ref.photo, options.focal)
+    focal_other = partner_focal(other.photo, ref.photo, focal_ref, options.focal)
+    hypotheses, checks = [found, alternative()], [second_look()]
+    size_a, size_b = (ref.photo.width, ref.photo.height), (other.photo.width, other.photo.height)
+    profile = None
+    if focal_ref is None and focal_other is None:
+        everything = Matches.joined([hypothesis.matches for hypothesis in (*hypotheses, *checks)])
+        drawn = focal_profile(everything, size_a, size_b)
+        profile = drawn if drawn is not None and drawn.sharp else None
+    if profile is not None:
+        # Every matcher's matches fix the focal: the pose is the one they all give at it, and
+        # each matcher's own, fitted at that focal too, is a check on it.
+        focal_ref, focal_other, source = profile.focal, profile.focal_other, PROFILE_SOURCE
+        hypotheses, checks = [ConsistentMatches(everything, profile.inliers, EVERY_MATCHER)], [*hypotheses, *checks]
     judge = partial(estimate_pair, ref, other, focal_ref=focal_ref, known_source=source, model="3d",
-                    focal_other=partner_focal(other.photo, ref.photo, focal_ref, options.focal),
-                    focal_is_final=bool(options.focal), focal_rule=options.focal_rule, remember=remember)
-    return judged_matches([found, alternative()], judge, ref.photo.width, ref.photo.height, checks=[second_look()])
+                    focal_other=focal_other, focal_is_final=bool(options.focal) or profile is not None,
+                    focal_rule=options.focal_rule, remember=remember)
+    judged = judged_matches(hypotheses, judge, *size_a, checks=checks)
+    return judged if profile is None else replace(judged, focal_profile=profile)
 
 
 def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[ConsistentMatches], PairGeometry],
@@ -83,7 +107,7 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     inliers.
 
     Each hypothesis's own pose (``judge``; none where it raises a :class:`pis3r.errors.Pis3rError`)
-    scores every match by its Sampson distance ``d`` (MSAC: ``1 - (d / JUDGE_DISTANCE_PX)^2``,
+    scores every match by its Sampson distance ``d`` (MSAC: ``1 - (d / MSAC_REACH_PX)^2``,
     0 beyond): two matchers' wrong matches agree with no geometry and their right ones with
     the right one, so the pose that explains more of both is the likelier. A later hypothesis
     replaces the first only with ``JUDGE_MARGIN`` times its score: where both poses are right,
@@ -102,9 +126,8 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     angle between its pose and the winner's counts in ``rivals_apart_deg`` as well, its focal in
     ``rival_focals``."""
     everything = Matches.joined([hypothesis.matches for hypothesis in hypotheses])
-    reach = JUDGE_DISTANCE_PX * geometry.pixel_scale(width, height)
     posed = [(hypothesis, _pose(hypothesis, judge)) for hypothesis in hypotheses]
-    scored = [_judged(hypothesis, pose, everything, reach) for hypothesis, pose in posed if pose is not None]
+    scored = [_judged(hypothesis, pose, everything, width, height) for hypothesis, pose in posed if pose is not None]
     if not scored:
         return hypotheses[0]
     best = scored[0]
@@ -115,10 +138,10 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
               if candidate is not best and JUDGE_MARGIN * candidate.score >= best.score]
     if checks:
         with_checks = Matches.joined([everything, *(check.matches for check in checks)])
-        winner = _judged(best.hypothesis, best.pose, with_checks, reach)
+        winner = _judged(best.hypothesis, best.pose, with_checks, width, height).score
         for check in checks:
             pose = _pose(check, judge)
-            if pose is not None and JUDGE_MARGIN * _judged(check, pose, with_checks, reach).score >= winner.score:
+            if pose is not None and JUDGE_MARGIN * _judged(check, pose, with_checks, width, height).score >= winner:
                 rivals.append(pose)
     apart = max([0.0] + [rotation_angle_deg(pose.R @ best.pose.R.T) for pose in rivals])
     focals = tuple(float(pose.K_a[0, 0]) for pose in rivals)
@@ -135,8 +158,8 @@ def _pose(hypothesis: ConsistentMatches, judge: Callable[[ConsistentMatches], Pa
         return None
 
 
-def _judged(hypothesis: ConsistentMatches, pose: PairGeometry, matches: Matches, reach: float) -> _Judged:
-    """``hypothesis`` with its ``pose``'s score on ``matches`` (MSAC within ``reach`` px)."""
-    distance = np.abs(np.nan_to_num(geometry.epipolar_distances(matches, pose.R, pose.t, pose.K_a, pose.K_b),
-                                    nan=np.inf))
-    return _Judged(hypothesis, pose, float(np.sum(1.0 - np.minimum(distance / reach, 1.0) ** 2)), distance < reach)
+def _judged(hypothesis: ConsistentMatches, pose: PairGeometry, matches: Matches, width: int, height: int) -> _Judged:
+    """``hypothesis`` with its ``pose``'s score on ``matches`` (:func:`pis3r.reconstruct.geometry.msac_score`
+    on a ``width x height`` reference)."""
+    distances = geometry.epipolar_distances(matches, pose.R, pose.t, pose.K_a, pose.K_b)
+    return _Judged(hypothesis, pose, *geometry.msac_score(distances, width, height))

@@ -23,6 +23,7 @@ from pis3r.learned_features import (LEARNED_NETWORKS, SECOND_LOOK_SIDE, LearnedK
                                     learned_matches)
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
+from pis3r.reconstruct.focal_profile import FocalProfile
 from pis3r.reconstruct.options import DEFAULT_MATCHER
 from pis3r.scene import Deferred
 from pis3r.subpixel import refine_matches
@@ -74,13 +75,16 @@ class ConsistentMatches:
     :data:`pis3r.learned_features.SECOND_LOOK_SIDE`). ``rivals_apart_deg``: where another
     matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
     neither pose explained clearly more of both, the angle between their rotations; else 0.
-    ``rival_focals``: the reference focals (px) those rival poses were fitted at."""
+    ``rival_focals``: the reference focals (px) those rival poses were fitted at.
+    ``focal_profile``: where every matcher's matches together fix the focal
+    (:mod:`pis3r.reconstruct.focal_profile`), that focal, at which the poses were judged."""
 
     matches: Matches
     inliers: np.ndarray
     detector: str
     rivals_apart_deg: float = 0.0
     rival_focals: tuple[float, ...] = ()
+    focal_profile: FocalProfile | None = None
 
 
 # ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).

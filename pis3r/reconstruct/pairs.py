@@ -35,6 +35,7 @@ from pis3r.errors import NotEnoughOverlapError
 from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
+from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, refined_focal
 from pis3r.reconstruct.focal import (FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval, focal_hypotheses,
                                      focal_warning)
 from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
@@ -232,6 +233,13 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
         known_interval = FocalInterval.of_lenses(*size_a)
+    elif found.focal_profile is not None and hypotheses[0].focal_a is None:
+        # Every matcher's matches fix the focal: the pose is fitted at it, as at a known one.
+        profile = found.focal_profile
+        focal = remember(("profiled focal", matches_key, size_a, size_b),
+                         lambda: refined_focal(inliers, profile, size_a, size_b))
+        hypotheses = [replace(profile.hypothesis, focal_a=focal)]
+        known_source, known_interval = PROFILE_SOURCE, profile.interval
 
     def own_focal(features: PhotoFeatures) -> float | None:
         # Edges are found once per photo, whichever pair or model asks.
