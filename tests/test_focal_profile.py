@@ -87,7 +87,7 @@ def test_a_sharp_profile_gives_the_pair_every_matcher_s_pose_at_its_focal():
     """Where the profile is sharp, the pair's matches are every matcher's, its focal the peak's,
     presented as measured with the profile's interval; where it is not, the judge's as before."""
     from pis3r.reconstruct.focal_profile import PROFILE_SOURCE
-    from pis3r.reconstruct.hypotheses import EVERY_MATCHER
+    from pis3r.reconstruct.matching import EVERY_MATCHER
     from pis3r.reconstruct.pairs import estimate_pair
 
     R, t = rotation_y(-30.0), np.array([1.0, 0.3, 0.3])

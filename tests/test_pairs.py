@@ -14,7 +14,7 @@ from pis3r.reconstruct.confidence import pair_confidence
 from pis3r.reconstruct.geometry import fundamental
 from pis3r.reconstruct.focal import focal_hypotheses, focals_from_homography, plausibility_warning
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.matching import PhotoFeatures, consistent_matches
+from pis3r.reconstruct.matching import EVERY_MATCHER, PhotoFeatures, consistent_matches
 from tests.analytic import Plane, _texture, planes_scene, render, rotation_y
 from tests.conftest import REAL, needs_real_data
 
@@ -126,6 +126,10 @@ def test_asift_matches_a_view_too_oblique_for_sift():
     # The default pools SIFT's, ASIFT's and XFeat's matches there: more agree than ASIFT's alone.
     pooled = consistent_matches(a, b)
     assert pooled.detector == "pooled" and pooled.inliers.sum() > found.inliers.sum()
+    # Where every matcher's matches made a pair, the held-back band test re-matches with the pool
+    # (a detector named, not the SIFT-first search, which here takes ASIFT's under matcher sift).
+    again = consistent_matches(a, b, EVERY_MATCHER, matcher="sift")
+    assert again.detector == "pooled" and again.inliers.sum() > found.inliers.sum()
     # ASIFT's points are found on tilted copies; refined, the inliers lie on the wall's true
     # homography (their median error was 0.82 px as detected).
     H = K @ (oblique.R + np.outer(oblique.t, [0.0, 0.0, 1.0 / 6.0])) @ np.linalg.inv(K)

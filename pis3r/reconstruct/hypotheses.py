@@ -42,7 +42,7 @@ from pis3r.reconstruct import geometry
 from pis3r.reconstruct.focal import known_focal, partner_focal
 from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, focal_profile
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
+from pis3r.reconstruct.matching import EVERY_MATCHER, FEW_INLIERS, ConsistentMatches, PhotoFeatures
 from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 
 # A later hypothesis replaces the first only where its pose explains this much more of both
@@ -50,8 +50,6 @@ from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 # ScanNet pairs, Herz-Jesus 0-7, two temple pairs); where the pooled one was wrong, ALIKED's
 # explained 1.9-2.4 x as much (ScanNet 0737, fountain 0-10).
 JUDGE_MARGIN = 1.25
-# The detector named where every matcher's matches, at the focal they fix, give the pose.
-EVERY_MATCHER = "every matcher"
 
 
 class _Judged(NamedTuple):

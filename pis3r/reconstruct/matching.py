@@ -89,6 +89,8 @@ class ConsistentMatches:
 
 # ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).
 SECOND_LOOK = "ALIKED, second look"
+# Every matcher's matches at the focal they fix together (:mod:`pis3r.reconstruct.focal_profile`).
+EVERY_MATCHER = "every matcher"
 
 
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
@@ -100,7 +102,9 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     ``FEW_INLIERS`` agree; where fewer do, ``sift`` takes ASIFT's and ``auto`` SIFT's, ASIFT's
     and XFeat's pooled, if more agree there, and at least ``MIN_AFFINE_INLIERS``; ``xfeat`` and
     ``aliked`` take that network's alone from the start. ``SIFT`` (on the ``strongest`` if
-    given), ``ASIFT``, ``XFeat``, ``ALIKED``, ``pooled`` or ``SECOND_LOOK``: those alone."""
+    given), ``ASIFT``, ``XFeat``, ``ALIKED``, ``pooled`` or ``SECOND_LOOK``: those alone;
+    ``EVERY_MATCHER`` (what a pair was matched with, for the held-back band test, which judges no
+    hypotheses): the pooled ones."""
     w, h = a.photo.width, a.photo.height
     distinct_px = AFFINE_DISTINCT_SHARE * max(w, h, b.photo.width, b.photo.height)
 
@@ -136,7 +140,7 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
             return _epipolar(learned(network.name), w, h, network.label)
     sift_a, sift_b = ((a.sift, b.sift) if strongest is None
                       else (a.sift.strongest(strongest), b.sift.strongest(strongest)))
-    if detector == "pooled":
+    if detector in ("pooled", EVERY_MATCHER):
         return pooled(match(sift_a, sift_b))
     found = _epipolar(match(sift_a, sift_b), w, h, "SIFT")
     if detector == "SIFT" or found.inliers.sum() >= FEW_INLIERS:
