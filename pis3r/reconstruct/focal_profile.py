@@ -70,15 +70,15 @@ def focal_profile(matches: Matches, size_a: tuple[int, int], size_b: tuple[int, 
     side = max(size_a)
     focals = side * np.geomspace(*PLAUSIBLE_FOCAL, PROFILE_FOCALS)
     best = None
-    for hypothesis in focal_hypotheses(size_a, size_b, None, None):
-        # OpenCV's essential matrix leaves the GIL: the focals are fitted two at a time.
-        with ThreadPoolExecutor(2) as pool:
+    # OpenCV's essential matrix leaves the GIL: the focals are fitted two at a time.
+    with ThreadPoolExecutor(2) as pool:
+        for hypothesis in focal_hypotheses(size_a, size_b, None, None):
             fits = list(pool.map(lambda focal: _fit(matches, *hypothesis.intrinsics(focal, size_a, size_b), size_a),
                                  focals))
-        scores = np.array([score for score, _ in fits])
-        if np.all(scores < 0) or (best is not None and scores.max() <= best[1].max()):
-            continue
-        best = hypothesis, scores, fits
+            scores = np.array([score for score, _ in fits])
+            if np.all(scores < 0) or (best is not None and scores.max() <= best[1].max()):
+                continue
+            best = hypothesis, scores, fits
     if best is None:
         return None
     hypothesis, scores, fits = best
@@ -104,7 +104,7 @@ def _fit(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, 
     E, inliers = fit_essential(matches.pts_a.astype(np.float64), pts_b, threshold, FOCAL_PROFILE, K_a)
     if E is None:
         return -1.0, inliers
-    F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
+    F = geometry.fundamental_of_essential(E, K_a, K_b)
     return geometry.msac_score(sampson_distance(F, matches.pts_a, matches.pts_b), *size_a)[0], inliers
 
 

@@ -243,7 +243,12 @@ def _fundamental_derivatives(p: np.ndarray, R0: np.ndarray, pose: tuple, refine_
 
 def _fundamental(R: np.ndarray, t: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
     """``F`` ``(3, 3)`` of the pose ``x_b = R x_a + t`` (unit ``t``) between cameras ``K_a``, ``K_b``."""
-    return _inverse_intrinsics(K_b).T @ (_skew(t) @ R) @ _inverse_intrinsics(K_a)
+    return fundamental_of_essential(_skew(t) @ R, K_a, K_b)
+
+
+def fundamental_of_essential(E: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
+    """``F`` ``(3, 3)`` in pixels of the essential matrix ``E`` ``(3, 3)`` between cameras ``K_a``, ``K_b``."""
+    return _inverse_intrinsics(K_b).T @ E @ _inverse_intrinsics(K_a)
 
 
 def _inverse_intrinsics(K: np.ndarray) -> np.ndarray:
