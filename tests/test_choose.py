@@ -142,7 +142,7 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
         return original_reconstruct(self, found)
 
     monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", reconstruct)
-    whole = classical.ClassicalReconstructor(ReconstructOptions()).detector(*photos)
+    whole = classical.ClassicalReconstructor(ReconstructOptions()).matched_with(*photos)[0]
     detected.clear()
     memo = {}
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo=memo)
@@ -151,6 +151,21 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
     band_count = len(detected) - 2
     classical.ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert len(detected) == band_count + 2 and band_count == 2
+
+
+def test_the_band_turns_its_copies_upright_as_the_whole_photos_were(small_pair, monkeypatch):
+    """Where the whole photos' winning matches are ALIKED's on the other photo turned upright,
+    the band's copies (the same two cameras) are matched by ALIKED turned by as much."""
+    from pis3r.reconstruct import classical
+
+    seen = []
+    original_reconstruct = classical.ClassicalReconstructor.reconstruct
+    monkeypatch.setattr(classical.ClassicalReconstructor, "matched_with", lambda self, ref, other: ("ALIKED", 25.0))
+    monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", lambda self, found: seen.append(
+        (self.options.detector, self.options.turn_deg)) or original_reconstruct(self, found))
+    photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]
+    choice = choose_model(photos, "classical", ReconstructOptions(), model="auto")
+    assert choice.detector == "ALIKED" and set(seen) == {("ALIKED", 25.0)}
 
 
 def test_the_backends_3d_explanation_is_reconstructed_during_the_band_test_and_used_when_it_wins(small_pair,
@@ -172,7 +187,7 @@ def test_the_backends_3d_explanation_is_reconstructed_during_the_band_test_and_u
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo={})
     assert choice.chosen == Candidate("3d") and choice.scene is not None
     memo = {}
-    ClassicalReconstructor(ReconstructOptions(), memo).detector(*photos)
+    ClassicalReconstructor(ReconstructOptions(), memo).matched_with(*photos)
     after = ClassicalReconstructor(Candidate("3d").backend_options(ReconstructOptions()), memo).reconstruct(photos)
     for view, expected in zip(choice.scene.views, after.views):
         np.testing.assert_array_equal(view.camera.R, expected.camera.R)

@@ -221,7 +221,7 @@ def test_a_view_few_of_whose_sift_matches_with_the_reference_agree_is_placed_thr
     assert scene.indices == (0, 1, 2) and scene.dropped == ()
     assert not any(memo["features", id(photo), None if k < 2 else MULTI_VIEW_FEATURES].value()._affine.computed
                    for k, photo in enumerate(photos))
-    assert ("matches", id(photos[0]), id(photos[2]), "auto", None) not in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "auto", None, "auto", 0.0) not in memo
     # Shifts of the picture: the rotations about the vertical axis grow with the shift.
     turn = [view.camera.R[0, 2] for view in scene.views]
     assert turn[1] < 0 and turn[2] / turn[1] == pytest.approx(270 / 150, rel=0.1)
@@ -250,7 +250,7 @@ def test_a_weak_view_no_other_view_places_is_matched_with_the_reference_by_asift
     photos, memo = _crops((300, 100, 570)), {}
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
-    assert ("matches", id(photos[0]), id(photos[2]), "auto", None, "auto") in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "auto", None, "auto", 0.0) in memo
     assert memo["features", id(photos[0]), None].value()._affine.computed
 
 
@@ -306,6 +306,26 @@ def test_features_are_detected_once_per_photo_two_at_a_time(analytic_pair, monke
         np.testing.assert_array_equal(features.sift.points, alone.points)
         np.testing.assert_array_equal(features.sift.descriptors, alone.descriptors)
     assert reconstructor.features(photos[1:2])[0] is found[1] and len(detected) == 3
+
+
+@pytest.mark.parametrize("matcher, detector, detected", [("xfeat", "auto", False), ("aliked", "auto", False),
+                                                         ("auto", "XFeat", False), ("auto", "auto", True),
+                                                         ("sift", "auto", True), ("xfeat", "pooled", True)])
+def test_sift_is_detected_up_front_only_where_the_matcher_reads_it(analytic_pair, monkeypatch, matcher, detector,
+                                                                   detected):
+    """A learned network alone never reads SIFT's features: they are not detected with the
+    photo, but a later read (a many-view chain) still finds the ones it would have."""
+    import pis3r.reconstruct.matching as matching
+
+    _, _, ref_img, _, tgt_img, _ = analytic_pair
+    calls = []
+    original = matching.detect
+    monkeypatch.setattr(matching, "detect", lambda *args: calls.append(1) or original(*args))
+    photos = [Photo(ref_img, "ref"), Photo(tgt_img, "tgt")]
+    found = ClassicalReconstructor(ReconstructOptions(matcher=matcher, detector=detector)).features(photos)
+    assert len(calls) == (2 if detected else 0)
+    np.testing.assert_array_equal(found[1].sift.descriptors, original(found[1].gray).descriptors)
+    assert len(calls) == (2 if detected else 1)
 
 
 def test_a_background_detection_that_fails_is_left_to_its_reader(analytic_pair, monkeypatch):

@@ -78,7 +78,7 @@ def _second_opinion(matches: Matches):
     dealt = np.arange(len(matches)) % 3
     pooled, aliked, look = (_epipolar(matches.subset(dealt == k), 480, 360, detector)
                             for k, detector in enumerate(("pooled", "ALIKED", SECOND_LOOK)))
-    judged = second_opinion(ref, other, pooled, "auto", ReconstructOptions(), lambda: aliked, lambda: look,
+    judged = second_opinion(ref, other, pooled, "auto", ReconstructOptions(), lambda turn: aliked, lambda turn: look,
                             lambda key, compute: compute())
     return judged, ref, other
 

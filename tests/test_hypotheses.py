@@ -107,6 +107,26 @@ def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
     assert faint.rivals_apart_deg == 0.0 and faint.detector == "pooled"
 
 
+@pytest.mark.parametrize("focal, own_focals, replaced", [(420.0, True, True), (2000.0, True, False),
+                                                         (2000.0, False, True)])
+def test_a_pose_at_a_focal_no_lens_has_replaces_the_first_only_where_the_focal_was_given(focal, own_focals,
+                                                                                          replaced):
+    """A later pose that explains far more replaces the first, unless each pose fitted its own
+    focal and the later one's is outside PLAUSIBLE_FOCAL (2000 px on a 480 px photo: 4.2 x)."""
+    from types import SimpleNamespace
+
+    from pis3r.reconstruct.hypotheses import judged_matches
+    from pis3r.reconstruct.matching import ConsistentMatches
+
+    K = intrinsics(focal, 480, 360)
+    poses = {"pooled": SimpleNamespace(R=rotation_y(-5.0), t=np.array([0.0, 1.0, 0.0]), K_a=K, K_b=K),
+             "ALIKED": SimpleNamespace(R=rotation_y(-20.0), t=np.array([1.0, 0.0, 0.2]), K_a=K, K_b=K)}
+    found = [ConsistentMatches(_points_under(pose.R, pose.t, K, count, seed), np.ones(count, bool), name)
+             for (name, pose), count, seed in zip(poses.items(), (40, 200), (1, 2))]
+    judged = judged_matches(found, lambda hypothesis: poses[hypothesis.detector], 480, 360, own_focals=own_focals)
+    assert judged.detector == ("ALIKED" if replaced else "pooled")
+
+
 def test_the_rivals_focals_reach_the_pair_s_focal_interval():
     """The focals of the poses that rivalled the chosen matches (ConsistentMatches.rival_focals)
     reach the pair's geometry: its interval spans them, its focal and pose stay."""

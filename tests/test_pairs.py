@@ -245,20 +245,22 @@ def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(
 
 
 def test_a_photo_s_learned_keypoints_are_found_once_per_size(monkeypatch):
-    """ALIKED runs at its own size and at the second look's: the network's own size asked by
-    name is the default copy, not a second run."""
+    """ALIKED runs at its own size and at the second look's, and turned upright once per turn:
+    the network's own size asked by name is the default copy, not a second run."""
     import pis3r.reconstruct.matching as matching
     from pis3r.learned_features import LEARNED_NETWORKS, SECOND_LOOK_SIDE
 
     calls = []
     monkeypatch.setattr(matching, "learned_keypoints",
-                        lambda image, network, side: calls.append((network, side)) or object())
+                        lambda image, network, side, turn: calls.append((network, side, turn)) or object())
     features = PhotoFeatures(Photo(_texture("astronaut", 160), "ref.png"))
     default = features.learned("aliked")
     assert features.learned("aliked", LEARNED_NETWORKS["aliked"].max_side) is default
     assert features.learned("aliked", SECOND_LOOK_SIDE) is not default
     assert features.learned("aliked", SECOND_LOOK_SIDE) is features.learned("aliked", SECOND_LOOK_SIDE)
-    assert calls == [("aliked", LEARNED_NETWORKS["aliked"].max_side), ("aliked", SECOND_LOOK_SIDE)]
+    assert features.learned("aliked", None, 30.0) is features.learned("aliked", None, 30.0) is not default
+    side = LEARNED_NETWORKS["aliked"].max_side
+    assert calls == [("aliked", side, 0.0), ("aliked", SECOND_LOOK_SIDE, 0.0), ("aliked", side, 30.0)]
 
 
 def _shifted_crops(count: int = 2) -> list[PhotoFeatures]:
@@ -293,8 +295,8 @@ def test_later_pairs_of_several_photos_are_matched_on_the_strongest_features(mon
     scene = ClassicalReconstructor(ReconstructOptions(), memo).reconstruct(photos)
     assert scene.indices == (0, 1, 2)
     # The first pair fixes the focal on all features; the next on the 300 strongest.
-    assert ("matches", id(photos[0]), id(photos[1]), "auto", None, "auto") in memo
-    assert ("matches", id(photos[0]), id(photos[2]), "SIFT", 300, "auto") in memo
+    assert ("matches", id(photos[0]), id(photos[1]), "auto", None, "auto", 0.0) in memo
+    assert ("matches", id(photos[0]), id(photos[2]), "SIFT", 300, "auto", 0.0) in memo
 
 
 

@@ -37,7 +37,8 @@ from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
 from pis3r.reconstruct.local_warp import fit_local_warp, local_warp_threshold
-from pis3r.reconstruct.matching import FEW_INLIERS, SECOND_LOOK, ConsistentMatches, PhotoFeatures, consistent_matches
+from pis3r.reconstruct.matching import (FEW_INLIERS, SECOND_LOOK, ConsistentMatches, PhotoFeatures, consistent_matches,
+                                        reads_sift)
 from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 from pis3r.reconstruct.views import flows, homography_views, views_3d
 from pis3r.robust import MATCH_FILTER, fit_homography
@@ -277,21 +278,22 @@ class ClassicalReconstructor:
                 continue
             registered[j] = view_j.in_world_of(registered[i].camera)
 
-    def detector(self, ref: Photo, other: Photo) -> str:
-        """``SIFT``, ``ASIFT``, ``XFeat`` or ``pooled``: the features that match ``ref`` and ``other``; both are
-        memoised, so a reconstruction of the same photo objects with this memo reuses them."""
+    def matched_with(self, ref: Photo, other: Photo) -> tuple[str, float]:
+        """``(detector, turn_deg)`` of the matches of ``ref`` and ``other`` (memoised, features too)."""
         cv2.setRNGSeed(0)
-        return self._consistent_matches(*self.features([ref, other])).detector
+        found = self._consistent_matches(*self.features([ref, other]))
+        return found.detector, found.turn_deg
 
     def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures, detector: str | None = None,
-                            strongest: int | None = None) -> ConsistentMatches:
+                            strongest: int | None = None, turn_deg: float | None = None) -> ConsistentMatches:
         detector, matcher = detector or self.options.detector, self.options.matcher
-        return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher),
+        turn_deg = self.options.turn_deg if turn_deg is None else turn_deg
+        learned = partial(self._consistent_matches, ref, other)
+        return self._memoised(("matches", id(ref.photo), id(other.photo), detector, strongest, matcher, turn_deg),
                               lambda: second_opinion(ref, other, consistent_matches(ref, other, detector, strongest,
-                                                                                    matcher), detector, self.options,
-                                                     lambda: self._consistent_matches(ref, other, "ALIKED"),
-                                                     lambda: self._consistent_matches(ref, other, SECOND_LOOK),
-                                                     self._memoised))
+                                                                                    matcher, turn_deg),
+                                                     detector, self.options, partial(learned, "ALIKED", None),
+                                                     partial(learned, SECOND_LOOK, None), self._memoised))
 
     def cameras(self, ref: Photo, other: Photo) -> PairGeometry:
         """The geometry alone (no depth) that :meth:`reconstruct` finds for two photos."""
@@ -300,10 +302,10 @@ class ClassicalReconstructor:
                                   focal_is_final=bool(self.options.focal))
 
     def features(self, photos: list[Photo], max_features: int | None = None) -> list[PhotoFeatures]:
-        """Each photo's features (SIFT's ``max_features`` strongest, if given), memoised; those
-        not yet found are detected two photos at a time (OpenCV's SIFT releases the GIL and
-        leaves a core idle for part of each photo), and those being detected elsewhere
-        (:meth:`detect_in_background`) waited for."""
+        """Each photo's features (SIFT's ``max_features`` strongest, if given, unless the matcher
+        never reads them: :func:`pis3r.reconstruct.matching.reads_sift`), memoised; those not yet
+        found are detected two photos at a time (OpenCV's SIFT releases the GIL and leaves a core
+        idle for part of each photo), and those being detected elsewhere waited for."""
         found = self._detections(photos, max_features)
         pending = list({id(d): d for d in found if not d.computed}.values())
         with ThreadPoolExecutor(2) as pool:
@@ -311,23 +313,22 @@ class ClassicalReconstructor:
         return [d.value() for d in found]
 
     def detect_in_background(self, photos: list[Photo], max_features: int | None = None) -> threading.Thread:
-        """Start detecting the features of ``photos`` (as :meth:`features` with
-        ``max_features``), one at a time, on a thread (returned): what a later :meth:`features`
-        reads, found while the held-back band test leaves a core idle part of the time. A photo
-        that fails is left to that reader, which reports it."""
+        """Start detecting the features of ``photos`` (as :meth:`features` with ``max_features``), one
+        at a time, on a thread (returned): what a later :meth:`features` reads, found while the
+        held-back band test leaves a core idle part of the time. One that fails is left to that reader."""
         return compute_in_background(self._detections(photos, max_features), "pis3r-features")
 
     def _flows_in_background(self, photos: list[Photo], pairs: dict[int, PairGeometry],
                              anchors: dict[int, int]) -> threading.Thread:
-        """Start finding the flows (:func:`pis3r.reconstruct.views.flows`) of the 3-D ``pairs``
-        (view -> geometry with ``anchors``' view or the reference), one pair at a time, on a
-        thread (returned)."""
+        """Start finding the flows (:func:`pis3r.reconstruct.views.flows`) of the 3-D ``pairs`` (view
+        -> geometry with ``anchors``' view or the reference), one pair at a time, on a thread (returned)."""
         return compute_in_background([flows(photos[anchors.get(j, 0)], photos[j], pair, self._memoised)
                                for j, pair in pairs.items() if pair.model == "3d"], "pis3r-flows")
 
     def _detections(self, photos: list[Photo], max_features: int | None = None) -> list[Deferred]:
-        return [self.memo.setdefault(("features", id(p), max_features), Deferred(partial(PhotoFeatures, p, max_features)))
-                for p in photos]
+        sift_now = reads_sift(self.options.matcher, self.options.detector)
+        return [self.memo.setdefault(("features", id(p), max_features), Deferred(partial(
+            PhotoFeatures, p, max_features, sift_now))) for p in photos]
 
     def pair_geometry(self, ref: PhotoFeatures, other: PhotoFeatures, focal_ref: float | None = None,
                       source: str = "", focal_is_final: bool = False, named: bool = False,

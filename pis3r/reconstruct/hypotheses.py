@@ -19,6 +19,13 @@ its own pose explains about as much, the angle between the two is a rival's. Sca
 resized by 0.9 (6.6 deg off) and 0737 by 1.05 (29.7 deg off, on ALIKED's matches) held steady
 under resampling and passed as reliable without it.
 
+ALIKED and LightGlue are not invariant to turns of the picture: where the pool's inliers (SIFT's and
+ASIFT's are) show the other photo's content turned by ``UPRIGHT_FROM_DEG`` or more against the
+reference's, ALIKED matches it turned back upright (:func:`upright_turn`), both looks. ScanNet 0726
+(turned about 35 deg): ALIKED's epipolar inliers 9 -> 245 of the pair's, its pose from 37 deg off to
+right; the five ScanNet pairs with their second photo turned a quarter, as portrait and landscape
+photos without an EXIF orientation come: right on 3 instead of 0.
+
 Each matcher's pose fixes its own focal, and on wide baselines they disagree by tens of percent.
 So first, where no focal is known, all three sets of matches together draw the focal profile
 (:mod:`pis3r.reconstruct.focal_profile`). Where its peak is sharp, that is the focal, the pair's
@@ -39,10 +46,12 @@ from pis3r.camera import rotation_angle_deg
 from pis3r.errors import Pis3rError
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.focal import known_focal, partner_focal
+from pis3r.reconstruct.focal import PLAUSIBLE_FOCAL, known_focal, partner_focal
 from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, focal_profile
+from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.matching import EVERY_MATCHER, FEW_INLIERS, ConsistentMatches, PhotoFeatures
+from pis3r.reconstruct.matching import (EVERY_MATCHER, FEW_INLIERS, UPRIGHT_FROM_DEG, ConsistentMatches, PhotoFeatures,
+                                        image_turn_deg)
 from pis3r.reconstruct.pairs import PairGeometry, estimate_pair
 
 # A later hypothesis replaces the first only where its pose explains this much more of both
@@ -63,13 +72,14 @@ class _Judged(NamedTuple):
 
 
 def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMatches, detector: str,
-                   options: ReconstructOptions, alternative: Callable[[], ConsistentMatches],
-                   second_look: Callable[[], ConsistentMatches],
+                   options: ReconstructOptions, alternative: Callable[[float], ConsistentMatches],
+                   second_look: Callable[[float], ConsistentMatches],
                    remember: Callable[[tuple, Callable], Any]) -> ConsistentMatches:
     """``found`` (the matches of ``ref`` in ``other`` that ``detector`` gave), or, where the
     matcher is ``auto`` (``options``) and SIFT's were too few, :func:`judged_matches` of it and
     the ``alternative`` matches (ALIKED's), checked against the ``second_look``'s (ALIKED's at a
-    second size), each hypothesis's pose fitted at the focals the pair knows (the flag, EXIF),
+    second size), both given the angle to turn ``other`` upright by (:func:`upright_turn`),
+    each hypothesis's pose fitted at the focals the pair knows (the flag, EXIF),
     with ``remember`` (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo). Where the pair
     knows none and all their matches' focal profile is sharp, the judged hypothesis is all of them
     (``EVERY_MATCHER``, with the profile as ``focal_profile``), those three its checks, every
@@ -79,7 +89,8 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
         return found
     focal_ref, source = known_focal(ref.photo, options.focal)
     focal_other = partner_focal(other.photo, ref.photo, focal_ref, options.focal)
-    hypotheses, checks = [found, alternative()], [second_look()]
+    turn = upright_turn(found)
+    hypotheses, checks = [found, alternative(turn)], [second_look(turn)]
     size_a, size_b = (ref.photo.width, ref.photo.height), (other.photo.width, other.photo.height)
     profile = None
     if focal_ref is None and focal_other is None:
@@ -94,12 +105,24 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
     judge = partial(estimate_pair, ref, other, focal_ref=focal_ref, known_source=source, model="3d",
                     focal_other=focal_other, focal_is_final=bool(options.focal) or profile is not None,
                     focal_rule=options.focal_rule, remember=remember)
-    judged = judged_matches(hypotheses, judge, *size_a, checks=checks)
+    judged = judged_matches(hypotheses, judge, *size_a, checks=checks, own_focals=focal_ref is None)
     return judged if profile is None else replace(judged, focal_profile=profile)
 
 
+def upright_turn(found: ConsistentMatches) -> float:
+    """The angle (degrees) to turn the other photo by before ALIKED matches it: how far its
+    content is turned against the reference's in ``found``'s inliers (:func:`image_turn_deg`:
+    SIFT and ASIFT, which ``found`` pools, see any turn), where that is ``UPRIGHT_FROM_DEG`` or
+    more and rests on at least ``MIN_MATCHES`` inliers; else 0."""
+    if found.inliers.sum() < MIN_MATCHES:
+        return 0.0
+    turn = image_turn_deg(found.matches.subset(found.inliers))
+    return round(turn, 1) if abs(turn) >= UPRIGHT_FROM_DEG else 0.0
+
+
 def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[ConsistentMatches], PairGeometry],
-                   width: int, height: int, checks: list[ConsistentMatches] = ()) -> ConsistentMatches:
+                   width: int, height: int, checks: list[ConsistentMatches] = (),
+                   own_focals: bool = False) -> ConsistentMatches:
     """The first of ``hypotheses``, or all of their matches (``(width, height)`` the reference's
     size) with those that agree with the pose of a later one that explains them better as the
     inliers.
@@ -119,6 +142,11 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     ``rival_focals``: a focal another matcher's pose fits about as well at is one the matches
     cannot rule out (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`).
 
+    With ``own_focals`` (each pose fitted its own focal), a pose whose focal no ordinary lens has
+    (outside ``PLAUSIBLE_FOCAL`` times the reference's longest side) never replaces the first:
+    near an affine camera a pose flips (ScanNet 0726's crop: ALIKED's, at 4.4 x, 80 deg off,
+    replaced the pool's, itself wrong, and lost 3.2 dB of its picture).
+
     ``checks`` never win and add no matches: each is scored with the winner on all the
     matches, its own too, and where it explains at least ``1 / JUDGE_MARGIN`` as much, the
     angle between its pose and the winner's counts in ``rivals_apart_deg`` as well, its focal in
@@ -130,7 +158,8 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
         return hypotheses[0]
     best = scored[0]
     for candidate in scored[1:]:
-        if candidate.score > JUDGE_MARGIN * best.score:
+        plausible = PLAUSIBLE_FOCAL[0] <= candidate.pose.K_a[0, 0] / max(width, height) <= PLAUSIBLE_FOCAL[1]
+        if candidate.score > JUDGE_MARGIN * best.score and (plausible or not own_focals):
             best = candidate
     rivals = [candidate.pose for candidate in scored
               if candidate is not best and JUDGE_MARGIN * candidate.score >= best.score]
@@ -145,7 +174,8 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     focals = tuple(float(pose.K_a[0, 0]) for pose in rivals)
     if best.hypothesis is hypotheses[0]:
         return replace(hypotheses[0], rivals_apart_deg=apart, rival_focals=focals)
-    return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart, focals)
+    return ConsistentMatches(everything, best.agrees, best.hypothesis.detector, apart, focals,
+                             turn_deg=best.hypothesis.turn_deg)
 
 
 def _pose(hypothesis: ConsistentMatches, judge: Callable[[ConsistentMatches], PairGeometry]) -> PairGeometry | None:

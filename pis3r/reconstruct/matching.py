@@ -8,6 +8,8 @@ LighterGlue's matches (:mod:`pis3r.learned_features`) are pooled (matcher ``auto
 SIFT's where more agree (matcher ``sift``); matcher ``xfeat`` or ``aliked`` takes that
 network's alone. ASIFT and XFeat detect on copies at most 640 px long: their matches are moved
 to where their patches correlate on the photos themselves (:func:`pis3r.subpixel.refine_matches`).
+A learned network may match the other photo turned upright by the turn its content shows against
+the reference's (:func:`image_turn_deg`, :mod:`pis3r.reconstruct.hypotheses`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,15 @@ from pis3r.subpixel import refine_matches
 # Fewer epipolar inliers than this: a pose rests on too few matches to be trusted. From
 # SIFT, ASIFT is tried too; if still fewer, the cameras come with a warning.
 FEW_INLIERS = 50
+# Where a wide baseline's pooled matches turn the other photo's content by at least this much
+# (degrees, in the image plane) against the reference's, ALIKED matches it turned back upright:
+# ALIKED and LightGlue learned from photos turned little. ScanNet 0726 (turned about 35 deg):
+# ALIKED 9 epipolar inliers and 37 deg off as it is, 77 and 1.5 deg upright (true focal).
+UPRIGHT_FROM_DEG = 15.0
+# Pairs of matches whose segments' angles measure the turn (a fixed draw), and how far from the
+# most common turn a segment's counts (perspective turns a wide baseline's regions by 10-20 deg).
+TURN_SEGMENTS = 4000
+TURN_REACH_DEG = 30.0
 # ASIFT's matches, or the pooled ones, replace SIFT's only with at least this many epipolar
 # inliers: among their hundreds of matches, a dozen agree on some fundamental matrix by chance
 # (LighterGlue matches noise with noise).
@@ -39,31 +50,42 @@ MIN_AFFINE_INLIERS = 2 * MIN_MATCHES
 
 class PhotoFeatures:
     """A photo with its ``(H, W)`` uint8 luminance (:func:`pis3r.features.to_gray_u8`), its SIFT
-    features (the ``max_features`` strongest, if given) and, when first asked for, its ASIFT's
-    and its learned networks' keypoints (each size once)."""
+    features (the ``max_features`` strongest, if given; detected here with ``sift_now``, else
+    when first read) and, when first asked for, its ASIFT's and its learned networks' keypoints
+    (each size once)."""
 
-    def __init__(self, photo: Photo, max_features: int | None = None) -> None:
+    def __init__(self, photo: Photo, max_features: int | None = None, sift_now: bool = True) -> None:
         self.photo = photo
         # SIFT, ASIFT, match refinement and vanishing points all read this luminance: converted
         # once, not by each (0.07-0.25 s per 12 MP photo).
         self.gray = to_gray_u8(photo.pixels)
-        self.sift: Features = detect(self.gray) if max_features is None else detect(self.gray, max_features)
+        # A learned matcher alone never reads SIFT's features (a many-view chain may): detecting
+        # them anyway cost its two-photo stitch 0.5 s of 4.5 (lpc-eyot, with the band's copies).
+        self._sift = Deferred(lambda: detect(self.gray) if max_features is None else detect(self.gray, max_features))
+        if sift_now:
+            self._sift.value()
         # Once, behind a lock: the pairs of several views with the reference run two at a time,
         # and both may need its ASIFT (3-4 CPU seconds for a 1 MP photo).
         self._affine = Deferred(lambda: detect_affine(self.gray))
-        self._learned: dict[tuple[str, int], Deferred] = {}
+        self._learned: dict[tuple[str, int, float], Deferred] = {}
+
+    @property
+    def sift(self) -> Features:
+        return self._sift.value()
 
     @property
     def affine(self) -> Features:
         return self._affine.value()
 
-    def learned(self, network: str, max_side: int | None = None) -> LearnedKeypoints:
+    def learned(self, network: str, max_side: int | None = None, turn_deg: float = 0.0) -> LearnedKeypoints:
         """The ``network``'s keypoints (:data:`pis3r.learned_features.LEARNED_NETWORKS`), on a copy
-        at most ``max_side`` long (the network's own size by default), found once."""
+        at most ``max_side`` long (the network's own size by default), turned ``turn_deg`` if
+        given (:func:`pis3r.learned_features.learned_keypoints`), found once."""
         # XFeat sees the luminance, ALIKED the colours it was trained on.
         image = self.gray if network == "xfeat" else self.photo.pixels
         side = max_side or LEARNED_NETWORKS[network].max_side
-        found = self._learned.setdefault((network, side), Deferred(lambda: learned_keypoints(image, network, side)))
+        found = self._learned.setdefault((network, side, turn_deg),
+                                         Deferred(lambda: learned_keypoints(image, network, side, turn_deg)))
         return found.value()
 
 
@@ -77,7 +99,9 @@ class ConsistentMatches:
     neither pose explained clearly more of both, the angle between their rotations; else 0.
     ``rival_focals``: the reference focals (px) those rival poses were fitted at.
     ``focal_profile``: where every matcher's matches together fix the focal
-    (:mod:`pis3r.reconstruct.focal_profile`), that focal, at which the poses were judged."""
+    (:mod:`pis3r.reconstruct.focal_profile`), that focal, at which the poses were judged.
+    ``turn_deg``: how far the other photo was turned upright before a learned network matched
+    it (0: as it is)."""
 
     matches: Matches
     inliers: np.ndarray
@@ -85,6 +109,7 @@ class ConsistentMatches:
     rivals_apart_deg: float = 0.0
     rival_focals: tuple[float, ...] = ()
     focal_profile: FocalProfile | None = None
+    turn_deg: float = 0.0
 
 
 # ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).
@@ -93,8 +118,43 @@ SECOND_LOOK = "ALIKED, second look"
 EVERY_MATCHER = "every matcher"
 
 
+def image_turn_deg(matches: Matches) -> float:
+    """How far (degrees, clockwise on screen) the content of ``pts_b`` is turned against that
+    of ``pts_a`` in the image plane: the median, over ``TURN_SEGMENTS`` pairs of matches, of
+    the angle between the segment joining them in b and in a. A wide baseline's matches are
+    not related by one turn (perspective turns each region its own way), but their median is
+    how far a matcher that is not invariant to turns sees the photos turned."""
+    draw = np.random.default_rng(0)
+    first, second = draw.integers(0, len(matches), (2, TURN_SEGMENTS))
+    apart = first != second
+    in_a = matches.pts_a[second[apart]] - matches.pts_a[first[apart]]
+    in_b = matches.pts_b[second[apart]] - matches.pts_b[first[apart]]
+    if not apart.any():
+        return 0.0
+    turns = _wrapped_deg(np.degrees(np.arctan2(in_b[:, 1], in_b[:, 0]) - np.arctan2(in_a[:, 1], in_a[:, 0])))
+    # Wrong matches spread their segments' turns over the circle and would pull a plain median
+    # towards 0: the median is taken near the most common turn (5 deg bins, three together).
+    counts, edges = np.histogram(turns, 72, (-180.0, 180.0))
+    peak = edges[np.argmax(counts + np.roll(counts, 1) + np.roll(counts, -1))] + 2.5
+    near = _wrapped_deg(turns - peak)
+    return float(_wrapped_deg(peak + np.median(near[np.abs(near) <= TURN_REACH_DEG])))
+
+
+def _wrapped_deg(angles):
+    return (angles + 180.0) % 360.0 - 180.0
+
+
+def reads_sift(matcher: str, detector: str = "auto") -> bool:
+    """Whether :func:`consistent_matches` with ``matcher`` and ``detector`` starts from SIFT's
+    features (learned networks alone, ASIFT and the second look do not)."""
+    if detector == "auto":
+        return matcher in ("auto", "sift")
+    return detector in ("SIFT", "pooled", EVERY_MATCHER)
+
+
 def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto",
-                       strongest: int | None = None, matcher: str = DEFAULT_MATCHER) -> ConsistentMatches:
+                       strongest: int | None = None, matcher: str = DEFAULT_MATCHER,
+                       turn_deg: float = 0.0) -> ConsistentMatches:
     """Matches of ``a`` in ``b`` and their epipolar inliers.
 
     ``detector`` ``auto`` follows ``matcher`` (:data:`pis3r.reconstruct.options.MATCHERS`):
@@ -116,8 +176,8 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
         pts_b[found.inliers] = refined.pts_b
         return replace(found, matches=Matches(found.matches.pts_a, pts_b))
 
-    def learned(network: str, max_side: int | None = None) -> Matches:
-        return learned_matches(a.gray, b.gray, a.learned(network, max_side), b.learned(network, max_side),
+    def learned(network: str, max_side: int | None = None, turn: float = 0.0) -> Matches:
+        return learned_matches(a.gray, b.gray, a.learned(network, max_side), b.learned(network, max_side, turn),
                                network).matches
 
     def pooled(sift: Matches) -> ConsistentMatches:
@@ -134,10 +194,10 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     if detector == "ASIFT":
         return affine()
     if detector == SECOND_LOOK:
-        return _epipolar(learned("aliked", SECOND_LOOK_SIDE), w, h, SECOND_LOOK)
+        return replace(_epipolar(learned("aliked", SECOND_LOOK_SIDE, turn_deg), w, h, SECOND_LOOK), turn_deg=turn_deg)
     for network in LEARNED_NETWORKS.values():
         if detector == network.label or (detector == "auto" and matcher == network.name):
-            return _epipolar(learned(network.name), w, h, network.label)
+            return replace(_epipolar(learned(network.name, None, turn_deg), w, h, network.label), turn_deg=turn_deg)
     sift_a, sift_b = ((a.sift, b.sift) if strongest is None
                       else (a.sift.strongest(strongest), b.sift.strongest(strongest)))
     if detector in ("pooled", EVERY_MATCHER):

@@ -49,7 +49,9 @@ class ReconstructOptions:
     ``model``: one of :data:`RECONSTRUCT_MODELS`; ``focal_rule``: one of :data:`FOCAL_RULES`;
     ``fill_reference``: whether the reference view's depth is filled where the other views do
     not see it (the held-back band test renders only the other views: there it is not);
-    ``matcher``: one of :data:`MATCHERS`; ``detector``: one of :data:`FEATURE_DETECTORS`.
+    ``matcher``: one of :data:`MATCHERS`; ``detector``: one of :data:`FEATURE_DETECTORS`;
+    ``turn_deg``: with a learned ``detector``, how far the other photo is turned upright before
+    the network matches it (the held-back band test turns its copies as the whole photos were).
     """
 
     focal: float | None = None
@@ -62,3 +64,4 @@ class ReconstructOptions:
     fill_reference: bool = True
     matcher: str = DEFAULT_MATCHER
     detector: str = "auto"
+    turn_deg: float = 0.0

@@ -188,7 +188,7 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     stitching.features(photos[:BAND_VIEWS])
     with ThreadPoolExecutor(1) as pool:
         copies = pool.submit(ClassicalReconstructor(base, band_memo).features, band_photos)
-        detector = stitching.detector(photos[0], photos[1])
+        detector, turn_deg = stitching.matched_with(photos[0], photos[1])
         copies.result()
     if memo is not None and len(photos) > BAND_VIEWS:
         # The other photos' features, which the stitch reads next (as it detects them:
@@ -199,7 +199,7 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     with ThreadPoolExecutor(1) as speculation:
         whole = speculation.submit(_whole_scene, guess, photos, base, memo) if guess and memo is not None else None
         scores = _band_scores(allowed, band_photos, band_memo, small[0], margin, band,
-                              replace(base, detector=detector))
+                              replace(base, detector=detector, turn_deg=turn_deg))
         scene = whole.result() if whole is not None else None
     best = best_score(scores)
     if not math.isfinite(scores[best].psnr):
