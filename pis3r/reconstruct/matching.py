@@ -35,8 +35,8 @@ from pis3r.subpixel import refine_matches
 FEW_INLIERS = 50
 # Where a wide baseline's pooled matches turn the other photo's content by at least this much
 # (degrees, in the image plane) against the reference's, ALIKED matches it turned back upright:
-# ALIKED and LightGlue learned from photos turned little. ScanNet 0726 (turned about 35 deg):
-# ALIKED 9 epipolar inliers and 37 deg off as it is, 77 and 1.5 deg upright (true focal).
+# ALIKED and LightGlue learned from photos turned little. ScanNet 0726 (turned about 40 deg):
+# ALIKED's epipolar inliers 14 as it is, 90 upright.
 UPRIGHT_FROM_DEG = 15.0
 # Pairs of matches whose segments' angles measure the turn (a fixed draw), and how far from the
 # most common turn a segment's counts (perspective turns a wide baseline's regions by 10-20 deg).
