@@ -148,3 +148,16 @@ def test_a_pair_seen_through_a_longer_lens_keeps_its_camera_or_says_it_cannot(tm
     row = evaluate_pose(spec, 1.0, zoom=0.7)
     focal_right = row["focal"] == pytest.approx(ref.K[0, 0], rel=0.25)
     assert (focal_right or not row["determined"]) and (row["rotation_error_deg"] < 5.0 or not row["reliable"])
+
+
+@pytest.mark.parametrize("quarters", [1, 2])
+def test_a_pair_whose_second_photo_is_turned_keeps_its_camera_turned_back(tmp_path, quarters):
+    """``benchmarks/resized_poses.py --turns``: the second photo turned by quarters (as a camera
+    held in portrait takes it); SIFT sees any turn, and the exported pose, turned back, is the
+    GT's: a wrong turn back would be 90 or 180 deg off."""
+    ref, tgt = two_view_cameras()
+    scene = planes_scene()
+    calibrated_pair(tmp_path / "planes", render(scene, ref)[0], render(scene, tgt)[0], ref, tgt)
+    [spec] = discover_cases(tmp_path, every_view_pair=True)
+    row = evaluate_pose(spec, 1.0, quarter_turns=quarters)
+    assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0

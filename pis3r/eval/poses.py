@@ -41,16 +41,22 @@ FAILED_ROTATION_DEG = 5.0
 WRONG_DIRECTION_DEG = 10.0
 # Translation-direction error counted for a rotation exported where the GT has a baseline.
 MISSING_TRANSLATION_DEG = 90.0
+# A photo turned a quarter counter-clockwise on screen (np.rot90) is its camera turned about its
+# axis: x' = y, y' = -x in camera coordinates.
+QUARTER_TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0,
-                  gain: float = 1.0, zoom: float = 1.0) -> dict | None:
+                  gain: float = 1.0, zoom: float = 1.0, quarter_turns: int = 0) -> dict | None:
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
     GT cameras; with ``zoom``, only the centre ``zoom`` of each side of both photos kept, with
     ``scale``, both resized by it (bicubic, the GT focal with them), and with ``gain``, their
     values multiplied by it and quantised to 8 bits again: the same scenes through the longer
     lenses, at the sizes and exposures other cameras take them in
-    (``benchmarks/resized_poses.py``; :func:`as_taken`)."""
+    (``benchmarks/resized_poses.py``; :func:`as_taken`). With ``quarter_turns``, the second photo
+    is turned that many quarters counter-clockwise on screen (a camera held in portrait against
+    one in landscape, no EXIF orientation to undo it) and the exported pose turned back before it
+    is compared."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
@@ -60,6 +66,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
         return None
     row = {"case": spec.name, "gt_focal": case.cameras["ref"].focal * scale, "refused": ""}
     reference, target = (as_taken(image, scale, gain, zoom) for image in (case.reference, case.target))
+    target = np.ascontiguousarray(np.rot90(target, quarter_turns)) if quarter_turns % 4 else target
     start = time.perf_counter()
     try:
         pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(reference, "ref"),
@@ -67,7 +74,8 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
     pair, confidence = confident_pair(pair)
-    errors = pose_error(np.hstack([pair.R, pair.t[:, None]]), case)
+    turn = np.linalg.matrix_power(QUARTER_TURN, quarter_turns % 4)
+    errors = pose_error(np.hstack([turn.T @ pair.R, (turn.T @ pair.t)[:, None]]), case)
     if math.isnan(errors["translation_error_deg"]) and not np.any(pair.t):
         errors["translation_error_deg"] = MISSING_TRANSLATION_DEG
     return {**row, **errors, "focal": float(pair.K_a[0, 0]), "model": pair.model, "features": pair.info["features"],

@@ -24,7 +24,7 @@ ASIFT's are) show the other photo's content turned by ``UPRIGHT_FROM_DEG`` or mo
 reference's, ALIKED matches it turned back upright (:func:`upright_turn`), both looks. ScanNet 0726
 (turned about 40 deg): ALIKED's epipolar inliers 14 -> 90; the five ScanNet pairs with their second
 photo turned a quarter, as portrait and landscape photos without an EXIF orientation come: right on
-3 instead of 0 (by half: 4 instead of 2).
+3 instead of 0 (by half: 4 instead of 2; by three quarters: 3 instead of 1).
 
 Each matcher's pose fixes its own focal, and on wide baselines they disagree by tens of percent.
 So first, where no focal is known, all three sets of matches together draw the focal profile
