@@ -283,12 +283,17 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
     return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(p), nan=1e6), axis=1))
 
 
+def plausible_focal(focal: float, width: int, height: int) -> bool:
+    """Whether ``focal`` (px) of a photo of that size is ``PLAUSIBLE_FOCAL`` times its longest side."""
+    return PLAUSIBLE_FOCAL[0] <= focal / max(width, height) <= PLAUSIBLE_FOCAL[1]
+
+
 def plausibility_warning(focal: float, width: int, height: int) -> str | None:
     """One line when a self-calibrated ``focal`` (px) of a photo of that size lies outside
     ``PLAUSIBLE_FOCAL`` times its longest side; ``None`` otherwise."""
+    if plausible_focal(focal, width, height):
+        return None
     factor = focal / max(width, height)
     low, high = PLAUSIBLE_FOCAL
-    if low <= factor <= high:
-        return None
     return (f"the self-calibrated focal length {focal:.0f} px is {factor:.2f} x the longest side "
             f"(ordinary lenses: {low}-{high} x): the cameras are likely wrong; pass --focal if you know it")

@@ -47,7 +47,7 @@ from pis3r.errors import Pis3rError
 from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.focal import PLAUSIBLE_FOCAL, known_focal, partner_focal
+from pis3r.reconstruct.focal import known_focal, partner_focal, plausible_focal
 from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, focal_profile
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.matching import (EVERY_MATCHER, FEW_INLIERS, UPRIGHT_FROM_DEG, ConsistentMatches, PhotoFeatures,
@@ -158,7 +158,7 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
         return hypotheses[0]
     best = scored[0]
     for candidate in scored[1:]:
-        plausible = PLAUSIBLE_FOCAL[0] <= candidate.pose.K_a[0, 0] / max(width, height) <= PLAUSIBLE_FOCAL[1]
+        plausible = plausible_focal(candidate.pose.K_a[0, 0], width, height)
         if candidate.score > JUDGE_MARGIN * best.score and (plausible or not own_focals):
             best = candidate
     rivals = [candidate.pose for candidate in scored

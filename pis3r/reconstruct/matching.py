@@ -60,7 +60,7 @@ class PhotoFeatures:
         # once, not by each (0.07-0.25 s per 12 MP photo).
         self.gray = to_gray_u8(photo.pixels)
         # A learned matcher alone never reads SIFT's features (a many-view chain may): detecting
-        # them anyway cost its two-photo stitch 0.5 s of 4.5 (lpc-eyot, with the band's copies).
+        # them anyway (the band's copies too) made lpc-eyot's `--matcher xfeat` 4.05 s, not 3.68.
         self._sift = Deferred(lambda: detect(self.gray) if max_features is None else detect(self.gray, max_features))
         if sift_now:
             self._sift.value()
@@ -120,17 +120,18 @@ EVERY_MATCHER = "every matcher"
 
 def image_turn_deg(matches: Matches) -> float:
     """How far (degrees, clockwise on screen) the content of ``pts_b`` is turned against that
-    of ``pts_a`` in the image plane: the median, over ``TURN_SEGMENTS`` pairs of matches, of
-    the angle between the segment joining them in b and in a. A wide baseline's matches are
-    not related by one turn (perspective turns each region its own way), but their median is
-    how far a matcher that is not invariant to turns sees the photos turned."""
+    of ``pts_a`` in the image plane: over ``TURN_SEGMENTS`` pairs of matches, the angle between
+    the segment joining them in b and in a; the median of those within ``TURN_REACH_DEG`` of the
+    most common one. A wide baseline's matches are not related by one turn (perspective turns
+    each region its own way), but that median is how far a matcher that is not invariant to
+    turns sees the photos turned."""
     draw = np.random.default_rng(0)
     first, second = draw.integers(0, len(matches), (2, TURN_SEGMENTS))
     apart = first != second
-    in_a = matches.pts_a[second[apart]] - matches.pts_a[first[apart]]
-    in_b = matches.pts_b[second[apart]] - matches.pts_b[first[apart]]
     if not apart.any():
         return 0.0
+    in_a = matches.pts_a[second[apart]] - matches.pts_a[first[apart]]
+    in_b = matches.pts_b[second[apart]] - matches.pts_b[first[apart]]
     turns = _wrapped_deg(np.degrees(np.arctan2(in_b[:, 1], in_b[:, 0]) - np.arctan2(in_a[:, 1], in_a[:, 0])))
     # Wrong matches spread their segments' turns over the circle and would pull a plain median
     # towards 0: the median is taken near the most common turn (5 deg bins, three together).
@@ -194,10 +195,10 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     if detector == "ASIFT":
         return affine()
     if detector == SECOND_LOOK:
-        return replace(_epipolar(learned("aliked", SECOND_LOOK_SIDE, turn_deg), w, h, SECOND_LOOK), turn_deg=turn_deg)
+        return _epipolar(learned("aliked", SECOND_LOOK_SIDE, turn_deg), w, h, SECOND_LOOK, turn_deg)
     for network in LEARNED_NETWORKS.values():
         if detector == network.label or (detector == "auto" and matcher == network.name):
-            return replace(_epipolar(learned(network.name, None, turn_deg), w, h, network.label), turn_deg=turn_deg)
+            return _epipolar(learned(network.name, None, turn_deg), w, h, network.label, turn_deg)
     sift_a, sift_b = ((a.sift, b.sift) if strongest is None
                       else (a.sift.strongest(strongest), b.sift.strongest(strongest)))
     if detector in ("pooled", EVERY_MATCHER):
@@ -214,6 +215,6 @@ def consistent_matches(a: PhotoFeatures, b: PhotoFeatures, detector: str = "auto
     return retry if count >= MIN_AFFINE_INLIERS and count > found.inliers.sum() else found
 
 
-def _epipolar(matches: Matches, width: int, height: int, detector: str) -> ConsistentMatches:
+def _epipolar(matches: Matches, width: int, height: int, detector: str, turn_deg: float = 0.0) -> ConsistentMatches:
     _, inliers = geometry.fundamental(matches, width, height)
-    return ConsistentMatches(matches, inliers, detector)
+    return ConsistentMatches(matches, inliers, detector, turn_deg=turn_deg)
