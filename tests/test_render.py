@@ -3,6 +3,7 @@ import functools
 import gc
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -443,3 +444,22 @@ def test_colours_are_sampled_block_by_block_as_in_one_pass():
         mine = layer[box] == k
         whole[box][mine] = np.clip(expected, 0, 1)[mine]
     np.testing.assert_array_equal(sampled, whole)
+
+
+def test_a_mesh_crossing_the_reference_s_camera_plane_is_cut_there_without_a_numpy_warning():
+    # A vertex on the reference's camera plane (z = 0) projects to infinity; the area of its
+    # faces (inf - inf) once reached the report as "RuntimeWarning: invalid value ...".
+    w, h = 40, 30
+    camera = Camera.identity(intrinsics(50, w, h), w, h)
+    view = View(_textured(h, w), camera, np.full((h, w), 5.0, np.float32), np.ones((h, w), np.float32))
+    mesh = view_mesh(view, 64)
+    points = mesh.points.copy()
+    points[points.shape[0] // 2, :, 2] = 0.0
+    placed = (1, mesh, points, 1.0)
+    with np.errstate(all="ignore"):
+        xy, z = render._into_reference(Scene([view, view]), camera, placed)
+    assert not np.isfinite(xy).all()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, counts = render._cut_surface(placed, xy, z, 1e-3, render.MAX_STRETCH, None)
+    assert counts.behind > 0 and counts.rendered == mesh.keep.sum() - counts.behind

@@ -145,7 +145,10 @@ def _cut_surface(placed, xy: np.ndarray, z: np.ndarray, min_z: float, max_stretc
     reference's ``window`` ``(width, height)`` (at the canvas's origin) drawn coarsely."""
     index, mesh, _, focal_ratio = placed
     in_front = np.all(grid_corners((z > min_z) & np.isfinite(xy).all(axis=-1)), axis=0)
-    canvas_area = signed_area(*grid_corners(xy))
+    # A vertex on the reference's camera plane projects to infinity: its faces' area is
+    # inf - inf, and they are cut as not in front anyway.
+    with np.errstate(invalid="ignore"):
+        canvas_area = signed_area(*grid_corners(xy))
     front_facing = canvas_area > 0
     # Both triangles of a grid block have half its area in source pixels.
     source_area = 0.5 * np.diff(mesh.ys)[:, None] * np.diff(mesh.xs)[None, :]
