@@ -74,6 +74,31 @@ def test_a_focal_another_matcher_s_pose_fits_as_well_is_not_presented_as_measure
     # A focal given is no measurement the rivals could contest.
     known = cameras_of(a, b, focal=420.0)
     assert known.focal_contested((900.0,)) is known
+    assert known.focal_contested((), FocalInterval(200.0, 900.0)) is known
+
+
+def test_a_focal_all_matchers_matches_together_leave_loose_is_not_presented_as_measured():
+    """Where every matcher's matches together draw a focal profile that is not sharp
+    (pis3r.reconstruct.focal_profile), the pair's interval spans it: one matcher's pinned focal
+    is no measurement where all of them fit a wider range as well."""
+    a, b, _, _ = general_pair()
+    pair = cameras_of(a, b)
+    focal = float(pair.K_a[0, 0])
+    assert pair.focal_determined
+    inside = FocalInterval(pair.focal_interval.low * 1.01, pair.focal_interval.high * 0.99)
+    assert pair.focal_contested((), inside) is pair
+    loose = pair.focal_contested((), FocalInterval(0.8 * focal, 1.4 * focal))
+    assert not loose.focal_determined and np.array_equal(loose.R, pair.R) and loose.K_a[0, 0] == focal
+    low, high = loose.focal_interval.low, loose.focal_interval.high
+    assert low == pytest.approx(0.8 * focal) and high == pytest.approx(1.4 * focal)
+    assert loose.focal_source.startswith("the matches' minimum, which all matchers' matches together leave loose")
+    [warning] = [line for line in loose.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert f"all matchers' matches together fit {0.8 * focal:.0f} to {1.4 * focal:.0f} px" in warning
+    # With a rival pose too, one warning names both.
+    both = pair.focal_contested((1.3 * focal,), FocalInterval(0.8 * focal, 1.1 * focal))
+    [warning] = [line for line in both.warnings if line.startswith(UNDETERMINED_FOCAL)]
+    assert f"at {1.3 * focal:.0f} px" in warning and "all matchers' matches together" in warning
+    assert both.focal_source.startswith("the matches' minimum, which another matcher's pose contests")
 
 
 def test_few_or_scattered_matches_make_the_pose_unreliable():

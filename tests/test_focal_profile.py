@@ -103,4 +103,9 @@ def test_a_sharp_profile_gives_the_pair_every_matcher_s_pose_at_its_focal():
     known = estimate_pair(ref, other, judged, 500.0, 500.0, "flag", True)
     assert known.K_a[0, 0] == 500.0 and known.focal_source == "flag"
     loose, _, _ = _second_opinion(_matches("depths", R, OBJECT - R @ OBJECT, 0))
-    assert loose.detector in ("pooled", "ALIKED") and loose.focal_profile is None
+    assert loose.detector in ("pooled", "ALIKED") and not loose.focal_profile.sharp
+    # A profile that is not sharp is no focal, but the pair's interval spans it.
+    turntable = estimate_pair(ref, other, loose, None, None)
+    assert not turntable.focal_determined and turntable.focal_source != PROFILE_SOURCE
+    drawn = loose.focal_profile.interval
+    assert turntable.focal_interval.low <= drawn.low and turntable.focal_interval.high >= drawn.high

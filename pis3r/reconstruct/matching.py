@@ -98,8 +98,10 @@ class ConsistentMatches:
     matcher's matches were weighed against these (:mod:`pis3r.reconstruct.hypotheses`) and
     neither pose explained clearly more of both, the angle between their rotations; else 0.
     ``rival_focals``: the reference focals (px) those rival poses were fitted at.
-    ``focal_profile``: where every matcher's matches together fix the focal
-    (:mod:`pis3r.reconstruct.focal_profile`), that focal, at which the poses were judged.
+    ``focal_profile``: the profile every matcher's matches draw together where they were weighed
+    against each other with no focal known (:mod:`pis3r.reconstruct.focal_profile`): where sharp,
+    its focal is the one the poses were judged at; where not, its interval is what the pair's
+    focal interval must span.
     ``turn_deg``: how far the other photo was turned upright before a learned network matched
     it (0: as it is)."""
 

@@ -118,28 +118,36 @@ class PairGeometry:
         return replace(self, focal_interval=interval, focal_source=source,
                        warnings=(*self.warnings, focal_warning(float(self.K_a[0, 0]), source, interval, why)))
 
-    def focal_contested(self, rival_focals: tuple[float, ...]) -> PairGeometry:
+    def focal_contested(self, rival_focals: tuple[float, ...], profile: FocalInterval | None = None) -> PairGeometry:
         """This pair with its focal's interval widened to the reference focals of rival poses (those
-        of other matchers' matches that explain them about as well, :mod:`pis3r.reconstruct.hypotheses`):
-        a focal another geometry fits as well at is one the matches cannot rule out (the crop
-        protocol's ScanNet 0722: the pooled matches pin 656-735 px, ALIKED's pose fits 1027-1425,
-        GT 1161). Where that leaves the focal undetermined, it is no longer presented as measured,
-        and the one focal warning gives the widened range and the rivals' focals. A known focal's
-        pair is returned as it is."""
+        of other matchers' matches that explain them about as well, :mod:`pis3r.reconstruct.hypotheses`)
+        and to ``profile``: the focals that every matcher's matches together fit about as well, where
+        their profile is not sharp (:mod:`pis3r.reconstruct.focal_profile`). A focal another geometry
+        fits as well at is one the matches cannot rule out (the crop protocol's ScanNet 0722: the
+        pooled matches pin 656-735 px, ALIKED's pose fits 1027-1425, GT 1161); so is one all the
+        matches together cannot (0722 with its second photo turned by half: the pool, ALIKED and its
+        second look each pin 1370-1569 px within 10 %, all of them together fit 1189-1587, GT 1161).
+        Where that leaves the focal undetermined, it is no longer presented as measured, and the one
+        focal warning gives the widened range and why. A known focal's pair is returned as it is."""
         interval = self.focal_interval
         if interval is None or interval.low == interval.high:
             return self
-        for rival in rival_focals:
+        for rival in (*rival_focals, *((profile.low, profile.high) if profile else ())):
             interval = interval.spanning(rival)
         if interval == self.focal_interval:
             return self
         focal = float(self.K_a[0, 0])
         if interval.determined(focal):
             return replace(self, focal_interval=interval)
-        why = "other matchers' poses explain the matches about as well at " + " and ".join(
-            f"{rival:.0f}" for rival in sorted(rival_focals)) + " px"
+        reasons = ([f"all matchers' matches together fit {profile.low:.0f} to {profile.high:.0f} px about as well"]
+                   if profile else [])
+        if rival_focals:
+            reasons.insert(0, "other matchers' poses explain the matches about as well at " + " and ".join(
+                f"{rival:.0f}" for rival in sorted(rival_focals)) + " px")
+        why = "; ".join(reasons)
         if self.focal_determined:
-            source = self._minimum_source("which another matcher's pose contests")
+            source = self._minimum_source("which another matcher's pose contests" if rival_focals else
+                                          "which all matchers' matches together leave loose")
         else:
             source, why = self.focal_source, f"the matches leave it loose, and {why}"
         kept = tuple(line for line in self.warnings if not line.startswith(UNDETERMINED_FOCAL))
@@ -196,7 +204,8 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         # pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
         if few and pair.focal_measured:
             return pair.focal_unmeasured("on too few of them", "too few matches agree")
-        return pair.focal_contested(found.rival_focals)
+        loose = found.focal_profile is not None and not found.focal_profile.sharp
+        return pair.focal_contested(found.rival_focals, found.focal_profile.interval if loose else None)
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
@@ -233,7 +242,7 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         hypotheses = [replace(hypothesis, focal_a=hypothesis.prior_a) for hypothesis in hypotheses]
         known_source = "prior (1.2 x longest side, chosen on the held-back band)"
         known_interval = FocalInterval.of_lenses(*size_a)
-    elif found.focal_profile is not None and hypotheses[0].focal_a is None:
+    elif found.focal_profile is not None and found.focal_profile.sharp and hypotheses[0].focal_a is None:
         # Every matcher's matches fix the focal: the pose is fitted at it, as at a known one.
         profile = found.focal_profile
         focal = remember(("profiled focal", matches_key, size_a, size_b),
