@@ -52,3 +52,27 @@ def test_measure_together_interleaves_the_runs_and_summarises_each_command(monke
     assert calls == ["a", "b", "a", "b", "a", "b"]
     assert (a["seconds"], a["gb"], a["ok"]) == (2.0, 0.5, True)
     assert (b["seconds"], b["ok"], b["last"]) == (20.0, False, "x")
+
+
+def test_the_learned_bar_is_measured_on_the_first_matcher_pair_resized_to_1_mp(monkeypatch, tmp_path):
+    """``section_matchers``: each matcher on each pair, then on the first pair resized to 1 MP,
+    where ``xfeat``'s seconds beyond ``sift``'s are the bar's value. The runs are stand-ins."""
+    import cv2
+
+    pair = tmp_path / "pair"
+    pair.mkdir()
+    for name in ("ref", "tgt"):
+        cv2.imwrite(str(pair / f"{name}.jpg"), np.full((60, 90, 3), 128, np.uint8))
+    seconds = {"sift": 2.0, "auto": 2.1, "xfeat": 3.5, "aliked": 5.0}
+    sizes = []
+
+    def fake_together(commands, repeat):
+        sizes.append(cv2.imread(commands[0][2]).shape[:2])
+        return [{"seconds": seconds[c[c.index("--matcher") + 1]], "gb": 0.5, "ok": True, "last": ""} for c in commands]
+
+    monkeypatch.setattr(speed, "measure_together", fake_together)
+    values = {}
+    speed.section_matchers(tmp_path, ["pair"], tmp_path, 1, values)
+    assert values["learned_extra_s_1mp"] == 1.5
+    (h0, w0), (h1, w1) = sizes
+    assert (h0, w0) == (60, 90) and abs(h1 * w1 / 1e6 - 1) < 0.01 and abs(w1 / h1 - 1.5) < 0.01
