@@ -38,6 +38,14 @@ FEW_INLIERS = 50
 # ALIKED and LightGlue learned from photos turned little. ScanNet 0726 (turned about 40 deg):
 # ALIKED's epipolar inliers 14 as it is, 90 upright.
 UPRIGHT_FROM_DEG = 15.0
+# Where too few of the pool's matches agree to show a turn, ALIKED looks at the other photo at
+# each quarter turn too (a portrait photo against a landscape one, with no EXIF orientation to
+# undo it); a turn replaces the photo as it is where at least MIN_MATCHES and QUARTER_TURN_MARGIN
+# times as many of its matches agree. ScanNet 0737 with its second photo turned by 1, 2, 3
+# quarters: 126, 117, 124 agree at the right turn, 8-13 at the others but the opposite one
+# (48-53), and unrelated photos 8-10 at every turn.
+QUARTER_TURNS_DEG = (90.0, 180.0, -90.0)
+QUARTER_TURN_MARGIN = 2.0
 # Pairs of matches whose segments' angles measure the turn (a fixed draw), and how far from the
 # most common turn a segment's counts (perspective turns a wide baseline's regions by 10-20 deg).
 TURN_SEGMENTS = 4000
