@@ -70,6 +70,44 @@ def test_a_pose_that_explains_more_of_every_matcher_s_matches_replaces_the_first
     assert judged_matches([pooled, aliked], judge_or_refuse, 480, 360).detector == "ALIKED"
 
 
+def test_a_first_hypothesis_on_too_few_inliers_keeps_no_head_start():
+    """Where the first hypothesis rests on fewer than FEW_INLIERS inliers (a camera pis3r flags),
+    a later pose on enough that explains more of both sets replaces it by any margin; the first,
+    as close, still counts as a rival. One on too few does not without JUDGE_MARGIN times as
+    much, nor does any against a first on enough."""
+    from types import SimpleNamespace
+
+    from pis3r.reconstruct.hypotheses import JUDGE_MARGIN, judged_matches
+    from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches
+
+    K = intrinsics(420.0, 480, 360)
+    right = SimpleNamespace(R=rotation_y(-20.0), t=np.array([1.0, 0.0, 0.2]), K_a=K, K_b=K)
+    wrong = SimpleNamespace(R=rotation_y(-5.0), t=np.array([0.0, 1.0, 0.0]), K_a=K, K_b=K)
+    poses = {"pooled": wrong, "ALIKED": right}
+
+    def hypothesis(pose, own: int, detector: str, seed: int) -> ConsistentMatches:
+        matches = _points_under(pose.R, pose.t, K, own, seed)
+        return ConsistentMatches(matches, np.ones(own, bool), detector)
+
+    def judge(found):
+        return poses[found.detector]
+
+    few, enough = FEW_INLIERS - 5, FEW_INLIERS + 2
+    assert enough < JUDGE_MARGIN * few
+    replaced = judged_matches([hypothesis(wrong, few, "pooled", 1), hypothesis(right, enough, "ALIKED", 2)], judge,
+                              480, 360)
+    assert replaced.detector == "ALIKED" and replaced.inliers.sum() == enough
+    assert replaced.rivals_apart_deg == pytest.approx(angle_deg(right.R @ wrong.R.T))
+    # Against another on too few, the first keeps its head start.
+    weak = judged_matches([hypothesis(wrong, 20, "pooled", 1), hypothesis(right, 23, "ALIKED", 2)], judge, 480, 360)
+    assert weak.detector == "pooled"
+    # With FEW_INLIERS or more, the same share more is not enough.
+    many = FEW_INLIERS + 10
+    held = judged_matches([hypothesis(wrong, many, "pooled", 1),
+                           hypothesis(right, int(many * (JUDGE_MARGIN + 1) / 2), "ALIKED", 2)], judge, 480, 360)
+    assert held.detector == "pooled"
+
+
 def test_a_second_look_never_wins_and_flags_a_pose_it_does_not_share():
     """ALIKED's second look (a check): scored with the winner on all the matches, its own too,
     it adds the angle between the two poses where it explains at least 1 / JUDGE_MARGIN as

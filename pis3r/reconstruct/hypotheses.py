@@ -152,8 +152,13 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     0 beyond): two matchers' wrong matches agree with no geometry and their right ones with
     the right one, so the pose that explains more of both is the likelier. A later hypothesis
     replaces the first only with ``JUDGE_MARGIN`` times its score: where both poses are right,
-    their scores are close. Where it does, the matches its pose agrees with, of both sets, are
-    the inliers (fountain 0-10: ALIKED's own 6.7 deg off, all those 1.0). The first is returned
+    their scores are close. A first one on fewer than ``FEW_INLIERS`` inliers has no such head
+    start against one on enough (ScanNet 0711 with its second photo turned a quarter: the pool's
+    32 inliers gave a pose 11.8 deg off, ALIKED's 127 one 4.3 deg off that explained 1.08 x as
+    much); against another on too few it keeps it (0726's crop: ALIKED's 48 gave a direction 75
+    deg off that explained 1.06 x as much as the pool's 27, and cost the picture 4.4 dB). Where
+    it does, the matches its pose agrees with, of both sets, are the inliers (fountain 0-10:
+    ALIKED's own 6.7 deg off, all those 1.0). The first is returned
     as it is where it wins: the matches its pose selects would agree with it by construction,
     and the pose's confidence, measured on resampled inliers, would then hold a wrong pose
     steady (templeRing 13-25, 88 deg off: 3 deg where it had been 13). The detector named is the
@@ -177,9 +182,13 @@ def judged_matches(hypotheses: list[ConsistentMatches], judge: Callable[[Consist
     if not scored:
         return hypotheses[0]
     best = scored[0]
+    # A first hypothesis on fewer than FEW_INLIERS inliers is no camera pis3r trusts (it is
+    # flagged): against one on enough, it keeps no head start.
+    weak_first = hypotheses[0].inliers.sum() < FEW_INLIERS
     for candidate in scored[1:]:
         plausible = plausible_focal(candidate.pose.K_a[0, 0], width, height)
-        if candidate.score > JUDGE_MARGIN * best.score and (plausible or not own_focals):
+        margin = 1.0 if weak_first and candidate.hypothesis.inliers.sum() >= FEW_INLIERS else JUDGE_MARGIN
+        if candidate.score > margin * best.score and (plausible or not own_focals):
             best = candidate
     rivals = [candidate.pose for candidate in scored
               if candidate is not best and JUDGE_MARGIN * candidate.score >= best.score]
