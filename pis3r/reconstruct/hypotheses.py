@@ -24,7 +24,8 @@ ASIFT's are) show the other photo's content turned by ``UPRIGHT_FROM_DEG`` or mo
 reference's, ALIKED matches it turned back upright (:func:`upright_turn`), both looks. ScanNet 0726
 (turned about 40 deg): ALIKED's epipolar inliers 14 -> 90; the five ScanNet pairs with their second
 photo turned a quarter, as portrait and landscape photos without an EXIF orientation come: right on
-3 instead of 0 (by half: 4 instead of 2; by three quarters: 3 instead of 1). Where the pool's
+3 instead of 0, and 4 since a pool on too few inliers keeps no head start in the judge (by half: 4
+instead of 2; by three quarters: 3 instead of 1). Where the pool's
 inliers are too few to show a turn, ALIKED also looks at the other photo turned by each quarter
 (:func:`quarter_turn`): ScanNet 0737 turned by a quarter, a half and three quarters had been
 refused twice and 40 deg off; now 5.5, 12.9 and 6.3 deg off, each flagged, at 3-4 s more.
