@@ -84,23 +84,28 @@ def test_aliked_finds_a_photo_in_its_turned_copy_once_that_is_turned_upright(sid
     assert np.median(error) < 1.5
 
 
+def _turned_a_quarter(folder: str):
+    """``(pair, errors)``: the cameras of a ScanNet pair with its second photo turned a quarter
+    (``np.rot90``), and their errors against the GT once the exported pose is turned back."""
+    from pis3r.eval.cases import load_crop_case
+    from pis3r.eval.geometry import pose_error
+    from pis3r.eval.poses import QUARTER_TURN
+    from pis3r.reconstruct.classical import ClassicalReconstructor
+    from pis3r.reconstruct.options import ReconstructOptions
+
+    case = load_crop_case(REAL / folder, crop=1.0)
+    turned = np.ascontiguousarray(np.rot90(case.target))
+    pair = ClassicalReconstructor(ReconstructOptions()).cameras(Photo(case.reference, "ref"), Photo(turned, "tgt"))
+    return pair, pose_error(np.hstack([QUARTER_TURN.T @ pair.R, (QUARTER_TURN.T @ pair.t)[:, None]]), case)
+
+
 @pytest.mark.slow
 @needs_real_data
 def test_a_wide_baseline_whose_other_photo_is_turned_a_quarter_keeps_its_camera():
     """ScanNet 0758 with its second photo turned a quarter (portrait against landscape, as photos
     without an EXIF orientation come): its camera, turned back, is within 5 deg of the GT (with
     the turn not measured: 7.7 deg off, and called reliable)."""
-    from pis3r.eval.cases import load_crop_case
-    from pis3r.eval.geometry import pose_error
-    from pis3r.reconstruct.classical import ClassicalReconstructor
-    from pis3r.reconstruct.options import ReconstructOptions
-
-    case = load_crop_case(REAL / "scannet-scene0758_00-000165-000510", crop=1.0)
-    turned = np.ascontiguousarray(np.rot90(case.target))
-    pair = ClassicalReconstructor(ReconstructOptions()).cameras(Photo(case.reference, "ref"), Photo(turned, "tgt"))
-    # np.rot90 turns the picture counter-clockwise on screen: camera x' = y, y' = -x.
-    quarter = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    errors = pose_error(np.hstack([quarter.T @ pair.R, (quarter.T @ pair.t)[:, None]]), case)
+    _, errors = _turned_a_quarter("scannet-scene0758_00-000165-000510")
     assert errors["rotation_error_deg"] < 5.0 and errors["translation_error_deg"] < 10.0
 
 
@@ -110,15 +115,6 @@ def test_a_wide_baseline_turned_a_quarter_with_too_few_pooled_inliers_is_registe
     """ScanNet 0737 with its second photo turned a quarter: the pool's 8 inliers show no turn, and
     ALIKED as it is finds 13; at each quarter, 126 at the right one. The pair had been refused
     ("do not overlap enough"); its camera, turned back, is now 5.5 deg off (direction 2.0)."""
-    from pis3r.eval.cases import load_crop_case
-    from pis3r.eval.geometry import pose_error
-    from pis3r.reconstruct.classical import ClassicalReconstructor
-    from pis3r.reconstruct.options import ReconstructOptions
-
-    case = load_crop_case(REAL / "scannet-scene0737_00-000930-001095", crop=1.0)
-    turned = np.ascontiguousarray(np.rot90(case.target))
-    pair = ClassicalReconstructor(ReconstructOptions()).cameras(Photo(case.reference, "ref"), Photo(turned, "tgt"))
-    quarter = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    errors = pose_error(np.hstack([quarter.T @ pair.R, (quarter.T @ pair.t)[:, None]]), case)
+    pair, errors = _turned_a_quarter("scannet-scene0737_00-000930-001095")
     assert pair.info["features"] == "ALIKED" and pair.info["num_inliers"] > 100
     assert errors["rotation_error_deg"] < 8.0 and errors["translation_error_deg"] < 10.0

@@ -139,11 +139,12 @@ class PairGeometry:
         focal = float(self.K_a[0, 0])
         if interval.determined(focal):
             return replace(self, focal_interval=interval)
-        reasons = ([f"all matchers' matches together fit {profile.low:.0f} to {profile.high:.0f} px about as well"]
-                   if profile else [])
+        reasons = []
         if rival_focals:
-            reasons.insert(0, "other matchers' poses explain the matches about as well at " + " and ".join(
+            reasons.append("other matchers' poses explain the matches about as well at " + " and ".join(
                 f"{rival:.0f}" for rival in sorted(rival_focals)) + " px")
+        if profile:
+            reasons.append(f"all matchers' matches together fit {profile.low:.0f} to {profile.high:.0f} px about as well")
         why = "; ".join(reasons)
         if self.focal_determined:
             source = self._minimum_source("which another matcher's pose contests" if rival_focals else
