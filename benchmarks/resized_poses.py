@@ -3,7 +3,7 @@
 cameras take the same scenes in.
 
     .venv/bin/python benchmarks/resized_poses.py [--data ../shared/data/real] [--scales 1 2 3]
-        [--gains 1] [--zooms 1] [--turns 0] [--crop 1] [--only NAME ...] [--matcher auto]
+        [--gains 1] [--zooms 1] [--turns 0] [--crop 1] [--only NAME ...] [--matcher auto] [--focal-given]
 
 The development set stores the Strecha scenes at 1024 x 683 (from 3072 x 2048, the size the
 unseen Strecha scenes come in) and the temple at 640 x 480. For each scale, every view pair of
@@ -24,7 +24,8 @@ quarters (1: a portrait photo against a landscape one, no EXIF orientation to un
 pose is turned back before it is compared), so that a matcher not invariant to turns shows. ``--only`` takes scene
 names (``strecha-fountain-P11``) or pair names (``strecha-fountain-P11/7-10``), and also pair
 folders with GT cameras (the ScanNet pairs: ``--scales 0.95 1 1.05 1.1`` shows how much of a
-wide baseline's pose is luck).
+wide baseline's pose is luck). ``--focal-given`` tells pis3r the GT focal, as ``--focal`` or EXIF would:
+the pose alone is then measured, not the focal.
 """
 
 from __future__ import annotations
@@ -61,6 +62,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=None,
                         help="scene or pair names, or pair folders with GT cameras (default: every calibrated scene)")
     parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=MATCHERS)
+    parser.add_argument("--focal-given", action="store_true",
+                        help="tell pis3r the GT focal (as --focal or EXIF would): the pose alone is measured")
     args = parser.parse_args()
     if any(factor <= 0 for factor in args.scales + args.gains + args.zooms) or max(args.zooms) > 1:
         parser.error("--scales, --gains, --zooms: give positive factors (--zooms at most 1)")
@@ -70,7 +73,7 @@ def main() -> None:
         parser.error(f"{args.data}: no calibrated scene{' of --only' if args.only else ''}")
     summaries = []
     for scale, gain, zoom, turns in product(args.scales, args.gains, args.zooms, args.turns):
-        rows = [row for row in (evaluate_pose(spec, args.crop, args.matcher, scale, gain, zoom, turns)
+        rows = [row for row in (evaluate_pose(spec, args.crop, args.matcher, scale, gain, zoom, turns, args.focal_given)
                                 for spec in specs) if row]
         print(f"\nscale {scale:g}, gain {gain:g}, zoom {zoom:g}, turns {turns}\n{format_table(rows)}", flush=True)
         summaries.append((scale, gain, zoom, turns, medians(rows)))

@@ -108,6 +108,18 @@ def test_a_pair_resized_keeps_its_camera_and_its_focal_scales_with_it(tmp_path):
     assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0 and row["determined"]
 
 
+def test_a_pair_told_its_focal_keeps_it(tmp_path):
+    """``benchmarks/resized_poses.py --focal-given``: pis3r is told the GT focal, resized with the
+    photos, and the exported camera keeps it, from the flag."""
+    ref, tgt = two_view_cameras()
+    scene = planes_scene()
+    calibrated_pair(tmp_path / "planes", render(scene, ref)[0], render(scene, tgt)[0], ref, tgt)
+    [spec] = discover_cases(tmp_path, every_view_pair=True)
+    row = evaluate_pose(spec, 1.0, scale=1.5, focal_given=True)
+    assert row["focal"] == row["gt_focal"] == 1.5 * ref.K[0, 0] and row["focal_source"] == "flag"
+    assert row["rotation_error_deg"] < 1.0 and row["translation_error_deg"] < 3.0
+
+
 def test_a_pair_darkened_keeps_its_camera(tmp_path):
     """``benchmarks/resized_poses.py --gains``: the same photos exposed 0.15 times as long and
     stored in 8 bits again (SIFT's absolute contrast threshold loses most of their keypoints;

@@ -47,7 +47,8 @@ QUARTER_TURN = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 
 
 def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, scale: float = 1.0,
-                  gain: float = 1.0, zoom: float = 1.0, quarter_turns: int = 0) -> dict | None:
+                  gain: float = 1.0, zoom: float = 1.0, quarter_turns: int = 0,
+                  focal_given: bool = False) -> dict | None:
     """The pose row of one case with ``matcher``'s correspondences, or ``None`` when it has no
     GT cameras; with ``zoom``, only the centre ``zoom`` of each side of both photos kept, with
     ``scale``, both resized by it (bicubic, the GT focal with them), and with ``gain``, their
@@ -56,7 +57,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     (``benchmarks/resized_poses.py``; :func:`as_taken`). With ``quarter_turns``, the second photo
     is turned that many quarters counter-clockwise on screen (a camera held in portrait against
     one in landscape, no EXIF orientation to undo it) and the exported pose turned back before it
-    is compared."""
+    is compared. With ``focal_given``, pis3r is told the GT focal (``--focal``), as EXIF would tell it."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
     from pis3r.reconstruct.options import ReconstructOptions
@@ -69,8 +70,8 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     target = np.ascontiguousarray(np.rot90(target, quarter_turns)) if quarter_turns % 4 else target
     start = time.perf_counter()
     try:
-        pair = ClassicalReconstructor(ReconstructOptions(matcher=matcher)).cameras(Photo(reference, "ref"),
-                                                                                   Photo(target, "tgt"))
+        options = ReconstructOptions(matcher=matcher, focal=row["gt_focal"] if focal_given else None)
+        pair = ClassicalReconstructor(options).cameras(Photo(reference, "ref"), Photo(target, "tgt"))
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
     pair, confidence = confident_pair(pair)
