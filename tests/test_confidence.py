@@ -11,7 +11,7 @@ import pis3r
 from pis3r.features import Matches
 from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, confident_pair, pair_confidence,
                                           pose_confidence, unreliable_warning)
-from pis3r.reconstruct.focal import UNDETERMINED_FOCAL, FocalInterval, focal_warning
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL, FocalInterval, focal_warning, known_focal
 from pis3r.reconstruct.matching import FEW_INLIERS
 from tests.conftest import REAL, needs_real_data
 from tests.test_self_calibration import cameras_of, general_pair
@@ -132,6 +132,9 @@ def test_a_focal_the_photos_leave_free_makes_the_camera_unreliable():
     line = unreliable_warning("tgt.jpg", confidence)
     assert line.startswith("the camera of tgt.jpg is unreliable: its rotation may be 12 deg or more off")
     assert "the focal lengths the photos allow move it by 12 deg" in line and "--focal" in line and "\n" not in line
+    # Told the focal already, the user is not told to pass it.
+    assert "--focal" not in unreliable_warning("tgt.jpg", confidence, known_focal(None, 1000.0)[1])
+    assert line.endswith("pass --focal, add photos between these, or try --matcher aliked or xfeat")
     assert confidence.to_dict() == {"rotation_uncertainty_deg": 12.0, "resampled_deg": 0.3, "focal_deg": 12.0,
                                     "rivals_deg": 0.0, "inliers": 400, "reliable": False}
 

@@ -201,8 +201,8 @@ class ClassicalReconstructor:
         for j in sorted(registered.keys() - {0}):
             pairs[j], confidence = confident_pair(pairs[j])
             registered[j] = replace(registered[j], pose_confidence=confidence)
-            warnings += [*pairs[j].warnings, *([] if confidence.reliable else [unreliable_warning(photos[j].name,
-                                                                                                  confidence)])]
+            warnings += [*pairs[j].warnings, *([] if confidence.reliable else [
+                unreliable_warning(photos[j].name, confidence, pairs[j].focal_source)])]
         first = pairs[first_view]
         for thread in background:
             thread.join()

@@ -44,6 +44,8 @@ LENS_REACH = (0.3, 6.0)
 # A focal counts as determined by the photos when its interval lies within this factor of it
 # either way; wider, every estimator's value comes with a warning.
 DETERMINED_FACTOR = 1.25
+# The source of a focal the user gave (``--focal``).
+FLAG_SOURCE = "flag"
 # How the warning of a focal the photos leave loose begins (more views may fix it).
 UNDETERMINED_FOCAL = "these photos do not determine the focal length"
 
@@ -156,7 +158,7 @@ def known_focal(photo: Photo, flag: float | None) -> tuple[float | None, str]:
     """``(focal, source)`` of ``photo`` before any matching: ``--focal``'s (``flag``), else its
     EXIF's, else ``(None, "")``."""
     if flag:
-        return float(flag), "flag"
+        return float(flag), FLAG_SOURCE
     if photo.focal_px:
         return float(photo.focal_px), f"EXIF ({photo.focal_evidence})"
     return None, ""

@@ -23,7 +23,7 @@ import numpy as np
 from pis3r.camera import pixel_rays, rotation_angle_deg
 from pis3r.errors import Pis3rError
 from pis3r.io import Photo
-from pis3r.reconstruct.focal import FocalInterval
+from pis3r.reconstruct.focal import FLAG_SOURCE, FocalInterval
 from pis3r.projection import level_rotation
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.scene import Scene
@@ -65,7 +65,7 @@ def closed_turn(scene: Scene, photos: list[Photo], order: list[int], options: Re
         # Matched as the backend matches a set's later pairs (their SIFT features memoised).
         backend = ClassicalReconstructor(replace(options, focal=focal), memo)
         features = backend.features([photos[first], photos[last]], MULTI_VIEW_FEATURES)
-        return backend.pair_geometry(*features, focal, "flag", True, True, "SIFT", MULTI_VIEW_FEATURES).R
+        return backend.pair_geometry(*features, focal, FLAG_SOURCE, True, True, "SIFT", MULTI_VIEW_FEATURES).R
 
     gaps = {}
     for earlier in range(count):
