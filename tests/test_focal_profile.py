@@ -63,10 +63,10 @@ def test_photos_of_two_sizes_are_profiled_under_each_focal_relation():
     assert profile.hypothesis.ratio == 1.0 and profile.sharp and abs(profile.focal / FOCAL - 1) < 0.06
 
 
-def _second_opinion(matches: Matches):
+def _second_opinion(matches: Matches, focal: float | None = None):
     """:func:`pis3r.reconstruct.hypotheses.second_opinion` on ``matches`` dealt to three matchers
-    (the pool, ALIKED and its second look) of two textured 480 x 360 photos with no EXIF, and
-    the photos' features."""
+    (the pool, ALIKED and its second look) of two textured 480 x 360 photos with no EXIF
+    (``focal``: the flag's), and the photos' features."""
     from pis3r.io import Photo
     from pis3r.reconstruct.hypotheses import second_opinion
     from pis3r.reconstruct.matching import SECOND_LOOK, PhotoFeatures, _epipolar
@@ -78,8 +78,8 @@ def _second_opinion(matches: Matches):
     dealt = np.arange(len(matches)) % 3
     pooled, aliked, look = (_epipolar(matches.subset(dealt == k), 480, 360, detector)
                             for k, detector in enumerate(("pooled", "ALIKED", SECOND_LOOK)))
-    judged = second_opinion(ref, other, pooled, "auto", ReconstructOptions(), lambda turn: aliked, lambda turn: look,
-                            lambda key, compute: compute())
+    judged = second_opinion(ref, other, pooled, "auto", ReconstructOptions(focal=focal), lambda turn: aliked,
+                            lambda turn: look, lambda key, compute: compute())
     return judged, ref, other
 
 
@@ -109,3 +109,23 @@ def test_a_sharp_profile_gives_the_pair_every_matcher_s_pose_at_its_focal():
     assert not turntable.focal_determined and turntable.focal_source != PROFILE_SOURCE
     drawn = loose.focal_profile.interval
     assert turntable.focal_interval.low <= drawn.low and turntable.focal_interval.high >= drawn.high
+
+
+def test_a_known_focal_gives_the_pair_every_matcher_s_pose_at_it():
+    """Told the focal, the pair's matches are every matcher's that the essential matrix at it keeps,
+    even where the views would leave it free (a turntable: no profile is drawn), the pose right;
+    where too few agree at it, the judge's as before."""
+    from pis3r.reconstruct.matching import EVERY_MATCHER
+    from pis3r.reconstruct.pairs import estimate_pair
+
+    R = rotation_y(-20.0)
+    judged, ref, other = _second_opinion(_matches("depths", R, OBJECT - R @ OBJECT, 0), FOCAL)
+    assert judged.detector == EVERY_MATCHER and judged.focal_profile is None and len(judged.matches) == 400
+    # Dealt in turn to the three matchers, whose matches are joined one matcher after another.
+    right = np.concatenate([np.arange(400)[np.arange(400) % 3 == k] < 300 for k in range(3)])
+    assert judged.inliers[right].mean() > 0.5 and judged.inliers[~right].mean() < 0.05
+    pair = estimate_pair(ref, other, judged, FOCAL, FOCAL, "flag", True)
+    assert pair.K_a[0, 0] == FOCAL and rotation_angle_deg(pair.R @ R.T) < 1.0
+    rng = np.random.default_rng(1)
+    junk = Matches(rng.uniform([0, 0], [480, 360], (90, 2)), rng.uniform([0, 0], [480, 360], (90, 2)))
+    assert _second_opinion(junk, FOCAL)[0].detector != EVERY_MATCHER

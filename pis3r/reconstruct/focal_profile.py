@@ -108,6 +108,13 @@ def _fit(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, 
     return geometry.msac_score(sampson_distance(F, matches.pts_a, matches.pts_b), *size_a)[0], inliers
 
 
+def essential_inliers(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray:
+    """``(N,)`` bool: the ``matches`` that the essential matrix fitted to them at ``K_a``, ``K_b``
+    keeps (as one focal of the profile keeps them; none where no essential matrix fits)."""
+    score, inliers = _fit(matches, K_a, K_b, size_a)
+    return inliers if score >= 0 else np.zeros(len(matches), bool)
+
+
 def refined_focal(inliers: Matches, profile: FocalProfile, size_a: tuple[int, int], size_b: tuple[int, int]) -> float:
     """``profile``'s focal refined on ``inliers`` (the robust Sampson error, from the essential
     matrix at it, with it as the refinement's weak prior): the grid's step is 6 %, about as much

@@ -39,6 +39,10 @@ sharp, the focal the judge's pose fits is no more pinned than the profile is: th
 interval spans the profile's (ScanNet 0722 with its second photo turned by half: the pool, ALIKED
 and its second look each pinned a focal 18-35 % above the GT's within 10 %, all their matches
 together fit 1189-1587 px about as well, and the pair said its 1520 px was measured).
+
+A focal the pair is told (the flag, both photos' EXIF) is used as a sharp profile's: the judge had
+kept one matcher's matches (ScanNet: the pool's 65-124 inliers, where all of them give 214-728),
+and the five ScanNet pairs resized by 0.9-1.1 at their GT focals were right 20 times of 25, now 24.
 """
 
 from __future__ import annotations
@@ -50,13 +54,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from pis3r.camera import rotation_angle_deg
+from pis3r.camera import intrinsics, rotation_angle_deg
 from pis3r.errors import Pis3rError
 from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.focal import known_focal, partner_focal, plausible_focal
-from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, focal_profile
+from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, essential_inliers, focal_profile
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.matching import (EVERY_MATCHER, FEW_INLIERS, QUARTER_TURN_MARGIN, QUARTER_TURNS_DEG,
                                         UPRIGHT_FROM_DEG, ConsistentMatches, PhotoFeatures, image_turn_deg)
@@ -89,10 +93,11 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
     second size), both given the angle to turn ``other`` upright by (:func:`upright_turn`),
     each hypothesis's pose fitted at the focals the pair knows (the flag, EXIF),
     with ``remember`` (:func:`pis3r.reconstruct.pairs.estimate_pair`'s memo). Where the pair
-    knows none and all their matches' focal profile is sharp, the judged hypothesis is all of them
-    (``EVERY_MATCHER``), those three its checks, every pose at the profile's focal (module
-    docstring). A profile drawn is the judged hypothesis's ``focal_profile``, sharp or not: where
-    not, the pair's focal interval spans it (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`)."""
+    knows them, or knows none and all their matches' focal profile is sharp, the judged hypothesis
+    is all of them, those the essential matrix at that focal keeps the inliers (``EVERY_MATCHER``),
+    those three its checks, every pose at that focal (module docstring). A profile drawn is the
+    judged hypothesis's ``focal_profile``, sharp or not: where not, the pair's focal interval spans
+    it (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`)."""
     if (detector, options.matcher) != ("auto", "auto") or (found.detector == "SIFT"
                                                             and found.inliers.sum() >= FEW_INLIERS):
         return found
@@ -101,16 +106,22 @@ def second_opinion(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMa
     turn = upright_turn(found) if found.inliers.sum() >= MIN_MATCHES else quarter_turn(alternative)
     hypotheses, checks = [found, alternative(turn)], [second_look(turn)]
     size_a, size_b = (ref.photo.width, ref.photo.height), (other.photo.width, other.photo.height)
-    drawn = None
-    if focal_ref is None and focal_other is None:
-        everything = Matches.joined([hypothesis.matches for hypothesis in (*hypotheses, *checks)])
-        drawn = focal_profile(everything, size_a, size_b)
+    everything = Matches.joined([hypothesis.matches for hypothesis in (*hypotheses, *checks)])
+    drawn = focal_profile(everything, size_a, size_b) if focal_ref is None and focal_other is None else None
     profile = drawn if drawn is not None and drawn.sharp else None
+    agreeing = None
     if profile is not None:
-        # Every matcher's matches fix the focal: the pose is the one they all give at it, and
-        # each matcher's own, fitted at that focal too, is a check on it.
         focal_ref, focal_other, source = profile.focal, profile.focal_other, PROFILE_SOURCE
-        hypotheses, checks = [ConsistentMatches(everything, profile.inliers, EVERY_MATCHER)], [*hypotheses, *checks]
+        agreeing = profile.inliers
+    elif focal_ref is not None and focal_other is not None:
+        agreeing = essential_inliers(everything, intrinsics(focal_ref, *size_a), intrinsics(focal_other, *size_b),
+                                     size_a)
+        # Too few agree at the focal given: each matcher's own pose at it is judged.
+        agreeing = agreeing if agreeing.sum() >= MIN_MATCHES else None
+    if agreeing is not None:
+        # A focal fixed (the flag, EXIF, a sharp profile), the pose is the one every matcher's matches
+        # give at it, and each matcher's own, fitted at that focal too, is a check on it.
+        hypotheses, checks = [ConsistentMatches(everything, agreeing, EVERY_MATCHER)], [*hypotheses, *checks]
     judge = partial(estimate_pair, ref, other, focal_ref=focal_ref, known_source=source, model="3d",
                     focal_other=focal_other, focal_is_final=bool(options.focal) or profile is not None,
                     focal_rule=options.focal_rule, remember=remember)
