@@ -134,6 +134,28 @@ def test_known_focals_stay_exact():
     assert rotation_angle_deg(pair.R @ R_gt.T) < 0.3
 
 
+@pytest.mark.parametrize("factor", [3.0, 0.55, 1.1])
+def test_an_exif_focal_the_matches_contradict_gives_way_with_a_warning(factor):
+    """A general pair whose EXIF says ``factor`` times the true focal (a resized photo that kept
+    its sensor's focal-plane resolution, a cropped one its 35 mm equivalent): where the matches
+    pin another focal, theirs is used and a warning names both; 10 % off, EXIF's stands."""
+    from dataclasses import replace
+
+    a, b, ref, other = general_pair()
+    exif = [replace(photo, focal_px=420.0 * factor, focal_evidence="35mm-equivalent") for photo in (a, b)]
+    pair = cameras_of(*exif)
+    R_gt, _ = relative_pose(ref, other)
+    assert rotation_angle_deg(pair.R @ R_gt.T) < 0.5
+    contradicted = [line for line in pair.warnings if "does not fit these photos' matches" in line]
+    if factor == 1.1:
+        assert pair.K_a[0, 0] == pytest.approx(462.0) and pair.focal_source.startswith("EXIF") and not contradicted
+        return
+    assert pair.K_a[0, 0] == pytest.approx(420.0, rel=0.03) and pair.focal_source.startswith("self-calibrated")
+    assert pair.focal_determined and len(contradicted) == 1 and f"{420.0 * factor:.0f} px (EXIF" in contradicted[0]
+    # The flag is the user's word: kept, whatever the matches say.
+    assert cameras_of(a, b, focal=420.0 * factor).K_a[0, 0] == 420.0 * factor
+
+
 def test_vanishing_points_that_contradict_the_matches_make_the_focal_undetermined():
     """The matches pin 420 px; both photos' edges (stand-in readings) say otherwise. Far from
     the prior (576 px) the matches' focal is kept, near it the edges' is; either way the

@@ -39,7 +39,7 @@ from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, refined_focal
 from pis3r.reconstruct.focal import (FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval, focal_hypotheses,
                                      focal_warning)
 from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
-from pis3r.reconstruct.self_calibration import essential_fit, rotation_fit
+from pis3r.reconstruct.self_calibration import checked_known_focal, essential_fit, rotation_fit
 
 # Share of epipolar inliers one homography must explain for the pair to count as planar.
 PLANAR_FRACTION = 0.9
@@ -210,8 +210,8 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
 
     # A plane seen from two places is explained by one homography too, whatever its
     # parallax level; an essential matrix is degenerate there.
-    planar = model == "homography" or (
-        model == "auto" and (parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION))
+    near_plane = parallax.parallax_class == "rotation" or h_inl.mean() >= PLANAR_FRACTION
+    planar = model == "homography" or (model == "auto" and near_plane)
     why = f"one homography explains the matches (parallax level {parallax.level:.2f} %)"
     rotation = remember(("rotation", matches_key, tuple(hypotheses), known_source, focal_is_final),
                         lambda: rotation_fit(H, inliers.subset(h_inl), hypotheses, size_a, size_b, known_source,
@@ -262,6 +262,12 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
 
     pose = essential_fit(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
                          seen_focal, known_interval)
+    # An EXIF focal is checked against the matches where they can fix one: enough of them, not
+    # at a rotation's parallax nor mostly on one plane, which leave it free whatever model renders.
+    if pose is not None and focal_ref is not None and not (focal_is_final or few or near_plane):
+        pose = remember(("checked", matches_key, tuple(hypotheses)),
+                        lambda: checked_known_focal(pose, inliers, size_a, size_b, known_source, remember,
+                                                    matches_key))
     if pose is None:
         hypothesis = hypotheses[0]
         K_a, K_b = hypothesis.intrinsics(hypothesis.focal_a or hypothesis.prior_a, size_a, size_b)

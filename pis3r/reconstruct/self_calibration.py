@@ -15,6 +15,9 @@ matches prefer a focal but both photos' vanishing points agree on one more than
 ``DETERMINED_FACTOR`` away, the two kinds of evidence disagree: the one nearer the prior is
 kept, the interval spans both, and a warning says so.
 
+A known focal the user did not give (EXIF's) is checked against the matches: where they pin
+another one clearly (:func:`checked_known_focal`), theirs is used, with a warning.
+
 Pixel coordinates follow the OpenCV convention; :mod:`pis3r.reconstruct.pairs` calls these.
 """
 
@@ -31,17 +34,21 @@ from pis3r.features import Matches
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.focal import (
     DETERMINED_FACTOR,
+    FOCAL_BOUND,
     FOCAL_EVIDENCE,
     LENS_REACH,
     FocalHypothesis,
     FocalInterval,
     fit_rotation,
+    focal_hypotheses,
     focal_interval,
     focal_warning,
     plausibility_warning,
     rotation_focal,
 )
 
+# The source of a focal the matches of a pair with parallax fix.
+SELF_CALIBRATED = "self-calibrated (essential matrix + Sampson refinement)"
 # A rotation explains a homography pair when its median transfer error on the homography's
 # inliers is at most this factor times the homography's plus this slack (px at 1024 px):
 # the rotation has 4 parameters to the homography's 8, so it leaves a little more.
@@ -153,8 +160,7 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
     if interval.preferred:
         if seen is None or abs(np.log(seen / focal)) <= np.log(DETERMINED_FACTOR):
             if interval.determined(focal):
-                return fit, "self-calibrated (essential matrix + Sampson refinement)", interval, _plausibility(
-                    fit, size_a), details
+                return fit, SELF_CALIBRATED, interval, _plausibility(fit, size_a), details
             source = "the matches' shallow minimum (essential matrix + Sampson refinement)"
             return fit, source, interval, [focal_warning(focal, source, interval, "the matches prefer it, but only "
                                                          "weakly"), *_plausibility(fit, size_a)], details
@@ -186,6 +192,49 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
     why = "the matches lie on one plane" if plane_only else "the matches fit a range of focals about as well"
     return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
                                    *_plausibility(fit, size_a)], details
+
+
+def checked_known_focal(pose, inliers: Matches, size_a, size_b, known_source: str,
+                        remember: Callable[[tuple, Callable], Any], matches_key: str):
+    """``pose`` (:func:`essential_fit`'s at a known focal the user did not give: EXIF's), or the
+    self-calibrated one where the matches fix a focal (:data:`SELF_CALIBRATED`) and the known
+    one lies outside its interval and more than ``DETERMINED_FACTOR`` from it, with a warning.
+    EXIF can be wrong: a cropped photo keeps its 35 mm-equivalent focal, and a resized one may
+    keep the sensor's focal-plane resolution (ela-REW_palace, resized to 1080 px: 3637 px, where
+    its rotation fits 858). A rotation's known focal is checked the same way (:func:`rotation_fit`).
+    The matches alone judge it: no vanishing points are sought (a tenth of a second a photo)."""
+    known = float(pose[0].K_a[0, 0])
+    free = focal_hypotheses(size_a, size_b, None, None)
+    # Where the matches' own best focal is near the known one, fits them hardly better (the
+    # interval's FOCAL_BOUND) or is not pinned, the known one stands without an interval.
+    best = remember(("essential", matches_key, tuple(free), size_a, size_b),
+                    lambda: best_essential(inliers, free, size_a, size_b))
+    if (best is None or not _apart(best[0].K_a[0, 0], known) or pose[0].cost <= best[0].cost + FOCAL_BOUND
+            or not _pinned(inliers, best[0])):
+        return pose
+    calibrated = essential_fit(inliers, free, size_a, size_b, "", False, remember, matches_key, lambda ratio: None)
+    if calibrated is None or calibrated[1] != SELF_CALIBRATED:
+        return pose
+    fit, source, interval, warnings, details = calibrated
+    focal = float(fit.K_a[0, 0])
+    if interval.low <= known <= interval.high or not _apart(focal, known):
+        return pose
+    warning = (f"the focal length {known:.0f} px ({known_source}) does not fit these photos' matches, which fix "
+               f"{interval.low:.0f}-{interval.high:.0f} px; using {focal:.0f} px")
+    return fit, source, interval, [*warnings, warning], details
+
+
+def _pinned(inliers: Matches, fit: geometry.PoseFit) -> bool:
+    """Whether the matches pin ``fit``'s focal within ``DETERMINED_FACTOR`` (:func:`pose_interval`'s
+    first probe each way already rises by ``FOCAL_BOUND``), found with those two probes alone."""
+    return all(geometry.refine_pose(inliers, fit.R, fit.t, focal_scaled(fit.K_a, factor),
+                                    focal_scaled(fit.K_b, factor)).cost - fit.cost >= FOCAL_BOUND
+               for factor in (DETERMINED_FACTOR, 1 / DETERMINED_FACTOR))
+
+
+def _apart(focal: float, other: float) -> bool:
+    """Whether two focals differ by more than ``DETERMINED_FACTOR``."""
+    return abs(np.log(focal / other)) > np.log(DETERMINED_FACTOR)
 
 
 def _plausibility(fit, size_a) -> list[str]:
