@@ -202,7 +202,7 @@ def checked_known_focal(pose, inliers: Matches, size_a, size_b, known_source: st
     EXIF can be wrong: a cropped photo keeps its 35 mm-equivalent focal, and a resized one may
     keep the sensor's focal-plane resolution (ela-REW_palace, resized to 1080 px: 3637 px, where
     its rotation fits 858). A rotation's known focal is checked the same way (:func:`rotation_fit`).
-    The matches alone judge it: no vanishing points are sought (a tenth of a second a photo)."""
+    The matches alone judge it: no vanishing points are sought."""
     known = float(pose[0].K_a[0, 0])
     free = focal_hypotheses(size_a, size_b, None, None)
     # Where the matches' own best focal is near the known one, fits them hardly better (the
@@ -225,8 +225,9 @@ def checked_known_focal(pose, inliers: Matches, size_a, size_b, known_source: st
 
 
 def _pinned(inliers: Matches, fit: geometry.PoseFit) -> bool:
-    """Whether the matches pin ``fit``'s focal within ``DETERMINED_FACTOR`` (:func:`pose_interval`'s
-    first probe each way already rises by ``FOCAL_BOUND``), found with those two probes alone."""
+    """Whether the matches pin ``fit``'s focal within ``DETERMINED_FACTOR``: the cost, the pose
+    re-fitted, rises by ``FOCAL_BOUND`` at that factor either way (so :func:`pose_interval`'s
+    interval would lie within it), found with those two probes alone."""
     return all(geometry.refine_pose(inliers, fit.R, fit.t, focal_scaled(fit.K_a, factor),
                                     focal_scaled(fit.K_b, factor)).cost - fit.cost >= FOCAL_BOUND
                for factor in (DETERMINED_FACTOR, 1 / DETERMINED_FACTOR))
