@@ -158,7 +158,7 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
                 remember((*key, "interval"), lambda: pose_interval(inliers, fit, max(size_a))))
     seen = seen_focal(hypothesis.ratio)
     if interval.preferred:
-        if seen is None or abs(np.log(seen / focal)) <= np.log(DETERMINED_FACTOR):
+        if seen is None or not _apart(seen, focal):
             if interval.determined(focal):
                 return fit, SELF_CALIBRATED, interval, _plausibility(fit, size_a), details
             source = "the matches' shallow minimum (essential matrix + Sampson refinement)"
@@ -228,9 +228,14 @@ def _pinned(inliers: Matches, fit: geometry.PoseFit) -> bool:
     """Whether the matches pin ``fit``'s focal within ``DETERMINED_FACTOR``: the cost, the pose
     re-fitted, rises by ``FOCAL_BOUND`` at that factor either way (so :func:`pose_interval`'s
     interval would lie within it), found with those two probes alone."""
-    return all(geometry.refine_pose(inliers, fit.R, fit.t, focal_scaled(fit.K_a, factor),
-                                    focal_scaled(fit.K_b, factor)).cost - fit.cost >= FOCAL_BOUND
+    return all(_refit_scaled(inliers, fit, fit.R, fit.t, factor).cost - fit.cost >= FOCAL_BOUND
                for factor in (DETERMINED_FACTOR, 1 / DETERMINED_FACTOR))
+
+
+def _refit_scaled(inliers: Matches, fit: geometry.PoseFit, R: np.ndarray, t: np.ndarray,
+                  factor: float) -> geometry.PoseFit:
+    """The pose refined from ``R``, ``t`` on ``inliers`` with ``fit``'s focals times ``factor``, held."""
+    return geometry.refine_pose(inliers, R, t, focal_scaled(fit.K_a, factor), focal_scaled(fit.K_b, factor))
 
 
 def _apart(focal: float, other: float) -> bool:
@@ -283,7 +288,7 @@ def pose_interval(inliers: Matches, fit: geometry.PoseFit, side: int) -> FocalIn
         last = [fit.R, fit.t]
 
         def rise(factor: float) -> tuple[float, float]:
-            probe = geometry.refine_pose(inliers, *last, focal_scaled(fit.K_a, factor), focal_scaled(fit.K_b, factor))
+            probe = _refit_scaled(inliers, fit, *last, factor)
             last[:] = probe.R, probe.t
             return probe.cost - fit.cost, rotation_angle_deg(probe.R @ fit.R.T)
         return rise
