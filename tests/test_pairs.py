@@ -41,10 +41,13 @@ def test_different_sizes_are_a_crop_or_a_resized_copy_and_known_focals_are_kept(
     assert (known.focal_a, known.ratio) == (400.0, 1.75)
 
 
-def test_an_implausible_focal_is_a_warning():
-    assert plausibility_warning(600.0, 640, 480) is None
-    assert "0.25 x the longest side" in plausibility_warning(160.0, 640, 480)
-    assert "4.00 x" in plausibility_warning(2560.0, 640, 480)
+def test_an_implausible_focal_is_a_warning_that_says_how_it_was_found():
+    calibrated, loose = "self-calibrated (essential matrix + Sampson refinement)", "matches and prior together (loose)"
+    assert plausibility_warning(600.0, 640, 480, calibrated) is None
+    assert plausibility_warning(160.0, 640, 480, calibrated).startswith(
+        "the focal length 160 px (self-calibrated) is 0.25 x the longest side")
+    line = plausibility_warning(2560.0, 640, 480, loose)
+    assert "2560 px (matches and prior together) is 4.00 x" in line and "self-calibrated" not in line
 
 
 def rotation_photos(focal_px=None):

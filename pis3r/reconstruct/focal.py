@@ -290,12 +290,14 @@ def plausible_focal(focal: float, width: int, height: int) -> bool:
     return PLAUSIBLE_FOCAL[0] <= focal / max(width, height) <= PLAUSIBLE_FOCAL[1]
 
 
-def plausibility_warning(focal: float, width: int, height: int) -> str | None:
-    """One line when a self-calibrated ``focal`` (px) of a photo of that size lies outside
-    ``PLAUSIBLE_FOCAL`` times its longest side; ``None`` otherwise."""
+def plausibility_warning(focal: float, width: int, height: int, source: str) -> str | None:
+    """One line when a ``focal`` (px) the photos gave (``source``: how, whose words before any
+    parenthesis the line names) of a photo of that size lies outside ``PLAUSIBLE_FOCAL`` times
+    its longest side; ``None`` otherwise. The line says how the focal was found, not that it was
+    measured: a loose fit outside ordinary lenses is no self-calibration."""
     if plausible_focal(focal, width, height):
         return None
     factor = focal / max(width, height)
     low, high = PLAUSIBLE_FOCAL
-    return (f"the self-calibrated focal length {focal:.0f} px is {factor:.2f} x the longest side "
+    return (f"the focal length {focal:.0f} px ({source.split(' (')[0]}) is {factor:.2f} x the longest side "
             f"(ordinary lenses: {low}-{high} x): the cameras are likely wrong; pass --focal if you know it")

@@ -99,7 +99,7 @@ def rotation_fit(H, h_inliers: Matches, hypotheses: list[FocalHypothesis], size_
               "self-calibrated (rotation homography: Brown-Lowe, refined)" if determined else
               "the rotation's loose fit (rotation homography: Brown-Lowe, refined)")
     warnings = [] if determined else [focal_warning(focal, source, interval, "a rotation")]
-    warnings += _plausibility(fit, size_a) if kind == "calibrated" else []
+    warnings += _plausibility(fit, size_a, source) if kind == "calibrated" else []
     if hypothesis.focal_a:
         warnings.append(f"the focal length {hypothesis.focal_a:.0f} px ({known_source}) does not fit this rotation; "
                         f"using {focal:.0f} px, which does")
@@ -160,10 +160,10 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
     if interval.preferred:
         if seen is None or not _apart(seen, focal):
             if interval.determined(focal):
-                return fit, SELF_CALIBRATED, interval, _plausibility(fit, size_a), details
+                return fit, SELF_CALIBRATED, interval, _plausibility(fit, size_a, SELF_CALIBRATED), details
             source = "the matches' shallow minimum (essential matrix + Sampson refinement)"
             return fit, source, interval, [focal_warning(focal, source, interval, "the matches prefer it, but only "
-                                                         "weakly"), *_plausibility(fit, size_a)], details
+                                                         "weakly"), *_plausibility(fit, size_a, source)], details
         prior, matched = hypothesis.prior_a, fit
         interval = interval.spanning(seen)
         source = "the matches' minimum (essential matrix + Sampson refinement; the vanishing points disagree)"
@@ -172,7 +172,7 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
             source = "vanishing points (both photos agree; the matches' own focal is farther from the prior)"
         why = f"the matches fit {focal:.0f} px best, both photos' vanishing points give {seen:.0f} px"
         return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
-                                       *_plausibility(fit, size_a)], details
+                                       *_plausibility(fit, size_a, source)], details
     loose = fit
     at_seen = None if seen is None else remember((*key, "at", seen), lambda: fit_at(inliers, loose, hypothesis, seen,
                                                                                      size_a, size_b))
@@ -191,7 +191,7 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
         source = "matches and prior together (the matches alone leave it free)"
     why = "the matches lie on one plane" if plane_only else "the matches fit a range of focals about as well"
     return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
-                                   *_plausibility(fit, size_a)], details
+                                   *_plausibility(fit, size_a, source)], details
 
 
 def checked_known_focal(pose, inliers: Matches, size_a, size_b, known_source: str,
@@ -243,9 +243,9 @@ def _apart(focal: float, other: float) -> bool:
     return abs(np.log(focal / other)) > np.log(DETERMINED_FACTOR)
 
 
-def _plausibility(fit, size_a) -> list[str]:
-    """The plausibility warning of a self-calibrated fit's (pose or rotation) focal, if any."""
-    return [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a)] if w]
+def _plausibility(fit, size_a, source: str) -> list[str]:
+    """The plausibility warning of a fit's (pose or rotation) focal found from ``source``, if any."""
+    return [w for w in [plausibility_warning(float(fit.K_a[0, 0]), *size_a, source)] if w]
 
 
 def best_essential(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b):
