@@ -62,6 +62,10 @@ def test_a_focal_another_matcher_s_pose_fits_as_well_is_not_presented_as_measure
     assert contested.focal_source.startswith("the matches' minimum, which another matcher's pose contests")
     [warning] = [line for line in contested.warnings if line.startswith(UNDETERMINED_FOCAL)]
     assert f"{1.2 * focal:.0f} and {1.6 * focal:.0f} px" in warning and "--focal" in warning
+    # Two rivals at one focal are named once.
+    [twice] = [line for line in pair.focal_contested((1.6 * focal, 1.6 * focal)).warnings
+               if line.startswith(UNDETERMINED_FOCAL)]
+    assert f"about as well at {1.6 * focal:.0f} px" in twice
     assert pair_confidence(contested).focal_deg > pair_confidence(pair).focal_deg
     # A focal the matches already left loose: its one warning gives the widened range.
     loose_interval = FocalInterval(0.8 * focal, 1.3 * focal)

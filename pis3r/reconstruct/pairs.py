@@ -141,8 +141,9 @@ class PairGeometry:
             return replace(self, focal_interval=interval)
         reasons = []
         if rival_focals:
+            # Two rivals at one focal (ALIKED's two looks often are) name it once.
             reasons.append("other matchers' poses explain the matches about as well at " + " and ".join(
-                f"{rival:.0f}" for rival in sorted(rival_focals)) + " px")
+                dict.fromkeys(f"{rival:.0f}" for rival in sorted(rival_focals))) + " px")
         if profile:
             reasons.append(f"all matchers' matches together fit {profile.low:.0f} to {profile.high:.0f} px about as well")
         why = "; ".join(reasons)
