@@ -261,8 +261,10 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         reference_focal = own_focal(ref)
         return None if reference_focal is None else vanishing.agreed_focal(reference_focal, own_focal(other), ratio)
 
+    # The focals every matcher's matches together fit about as well bound those these matches leave free.
+    allowed = found.focal_profile.interval if found.focal_profile is not None else None
     pose = essential_fit(inliers, hypotheses, size_a, size_b, known_source, plane_only, remember, matches_key,
-                         seen_focal, known_interval)
+                         seen_focal, known_interval, allowed)
     # An EXIF focal is checked against the matches where they can fix one: enough of them, not
     # at a rotation's parallax nor mostly on one plane, which leave it free whatever model renders.
     if pose is not None and focal_ref is not None and not (focal_is_final or few or near_plane):

@@ -128,7 +128,8 @@ def _transfer_error(H: np.ndarray, matches: Matches) -> np.ndarray:
 
 def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, size_b, known_source: str,
                   plane_only: bool, remember: Callable[[tuple, Callable], Any], matches_key: str,
-                  seen_focal: Callable[[float], float | None], known_interval: FocalInterval | None = None):
+                  seen_focal: Callable[[float], float | None], known_interval: FocalInterval | None = None,
+                  allowed: FocalInterval | None = None):
     """``(PoseFit, focal source, FocalInterval, warnings, details)`` of the best essential-matrix
     pose over the focal hypotheses and starting focals (refined jointly), or ``None``. A later
     hypothesis must fit better by ``FOCAL_EVIDENCE`` to replace an earlier one: with few or
@@ -141,7 +142,10 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
     still wide), unless both photos' vanishing points (``seen_focal(ratio)``) agree on one
     outside ``DETERMINED_FACTOR`` of it: the two kinds of evidence then disagree, the one nearer
     the prior is kept and the interval spans both. Where they do not, the focal is chosen as the
-    module docstring says, with a warning. ``remember``: see
+    module docstring says, with a warning; where the matches and the prior settle it outside
+    ``allowed`` (the focals every matcher's matches together fit about as well, where their
+    profile is not sharp: :mod:`pis3r.reconstruct.focal_profile`), at that range's nearer end,
+    since more matches than these rule it out. ``remember``: see
     :func:`pis3r.reconstruct.pairs.estimate_pair`, with ``matches_key`` naming the matches' values."""
     key = ("essential", matches_key, tuple(hypotheses), size_a, size_b)
     best = remember(key, lambda: best_essential(inliers, hypotheses, size_a, size_b))
@@ -189,6 +193,11 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
         # better than the prior itself (up to 1.5 dB on five pairs, the held-back band's
         # 3-D candidate too).
         source = "matches and prior together (the matches alone leave it free)"
+        if allowed is not None and not allowed.low <= focal <= allowed.high:
+            edge = min(max(focal, allowed.low), allowed.high)
+            fit = remember((*key, "at", edge), lambda: fit_at(inliers, loose, hypothesis, edge, size_a, size_b))
+            source = ("matches and prior together, within the focals all matchers' matches allow (the matches "
+                      "alone leave it free)")
     why = "the matches lie on one plane" if plane_only else "the matches fit a range of focals about as well"
     return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
                                    *_plausibility(fit, size_a, source)], details
