@@ -160,6 +160,11 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
         return fit, known_source, interval, warnings, details
     interval = (FocalInterval.of_lenses(*size_a) if plane_only else
                 remember((*key, "interval"), lambda: pose_interval(inliers, fit, max(size_a))))
+
+    def held_at(held: float) -> geometry.PoseFit:
+        # The matches' pose with the focal held there: fitted once per focal, whichever branch asks.
+        return remember((*key, "at", held), lambda: fit_at(inliers, best[0], hypothesis, held, size_a, size_b))
+
     seen = seen_focal(hypothesis.ratio)
     if interval.preferred:
         if seen is None or not _apart(seen, focal):
@@ -168,24 +173,21 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
             source = "the matches' shallow minimum (essential matrix + Sampson refinement)"
             return fit, source, interval, [focal_warning(focal, source, interval, "the matches prefer it, but only "
                                                          "weakly"), *_plausibility(fit, size_a, source)], details
-        prior, matched = hypothesis.prior_a, fit
+        prior = hypothesis.prior_a
         interval = interval.spanning(seen)
         source = "the matches' minimum (essential matrix + Sampson refinement; the vanishing points disagree)"
         if abs(np.log(seen / prior)) < abs(np.log(focal / prior)):
-            fit = remember((*key, "at", seen), lambda: fit_at(inliers, matched, hypothesis, seen, size_a, size_b))
+            fit = held_at(seen)
             source = "vanishing points (both photos agree; the matches' own focal is farther from the prior)"
         why = f"the matches fit {focal:.0f} px best, both photos' vanishing points give {seen:.0f} px"
         return fit, source, interval, [focal_warning(float(fit.K_a[0, 0]), source, interval, why),
                                        *_plausibility(fit, size_a, source)], details
-    loose = fit
-    at_seen = None if seen is None else remember((*key, "at", seen), lambda: fit_at(inliers, loose, hypothesis, seen,
-                                                                                     size_a, size_b))
-    if at_seen is not None and at_seen.cost <= loose.cost + FOCAL_EVIDENCE:
+    at_seen = None if seen is None else held_at(seen)
+    if at_seen is not None and at_seen.cost <= fit.cost + FOCAL_EVIDENCE:
         fit, source = at_seen, "vanishing points (both photos agree; the matches leave it free)"
     elif plane_only:
         # A plane says nothing of the focal (its interval is the lens range): the prior.
-        prior = hypothesis.prior_a
-        fit = remember((*key, "at", prior), lambda: fit_at(inliers, loose, hypothesis, prior, size_a, size_b))
+        fit = held_at(hypothesis.prior_a)
         source = "prior (1.2 x longest side, within the focals the matches allow)"
     else:
         # Where the matches and the weak prior balance along a flat valley, even outside
@@ -194,8 +196,7 @@ def essential_fit(inliers: Matches, hypotheses: list[FocalHypothesis], size_a, s
         # 3-D candidate too).
         source = "matches and prior together (the matches alone leave it free)"
         if allowed is not None and not allowed.low <= focal <= allowed.high:
-            edge = min(max(focal, allowed.low), allowed.high)
-            fit = remember((*key, "at", edge), lambda: fit_at(inliers, loose, hypothesis, edge, size_a, size_b))
+            fit = held_at(min(max(focal, allowed.low), allowed.high))
             source = ("matches and prior together, within the focals all matchers' matches allow (the matches "
                       "alone leave it free)")
     why = "the matches lie on one plane" if plane_only else "the matches fit a range of focals about as well"
