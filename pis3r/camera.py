@@ -35,6 +35,18 @@ def pixel_rays(pix: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.hstack([pix, np.ones((len(pix), 1))]) @ np.linalg.inv(K).T
 
 
+def undistorted_pixels(pix: np.ndarray, radial: float, K: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` where pixels ``pix`` ``(N, 2)`` of a lens with one ``radial`` distortion term
+    would lie through a pinhole: moved from the principal point of ``K`` by ``1 + radial r^2``,
+    ``r`` the distance to it over the principal point's distance from the corner (``radial``:
+    about the share by which the lens moves a corner; below 0 where it pushes the corners out,
+    a pincushion, above 0 where it pulls them in, a barrel)."""
+    centre = K[:2, 2]
+    offset = pix - centre
+    reach = float(centre @ centre) or 1.0
+    return centre + offset * (1.0 + radial * np.sum(offset * offset, axis=1, keepdims=True) / reach)
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera: intrinsics ``K (3, 3)``, world-to-camera ``R (3, 3)``, ``t (3,)``,

@@ -11,6 +11,7 @@ os.environ.setdefault("PIS3R_DEBUG", "")
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 REAL = SHARED / "data" / "real"
+PANORAMA = SHARED / "data" / "panorama"
 
 
 def real_pairs() -> list[Path]:
@@ -33,6 +34,9 @@ def load_benchmark(name: str) -> ModuleType:
 
 needs_real_data = pytest.mark.skipif(
     not REAL.is_dir(), reason=f"real image pairs not found at {REAL} (../shared is absent)"
+)
+needs_panorama_data = pytest.mark.skipif(
+    not PANORAMA.is_dir(), reason=f"panorama sets not found at {PANORAMA} (../shared is absent)"
 )
 
 

@@ -1,6 +1,7 @@
 import numpy as np
 
-from pis3r.camera import Camera, SampsonPoints, focal_scaled, fundamental_matrix, intrinsics, sampson_distance
+from pis3r.camera import (Camera, SampsonPoints, focal_scaled, fundamental_matrix, intrinsics, sampson_distance,
+                          undistorted_pixels)
 from tests.analytic import rotation_y
 
 
@@ -85,3 +86,15 @@ def test_focal_scaled_zooms_and_keeps_the_principal_point_and_the_input():
     zoomed = focal_scaled(K, 1.5)
     np.testing.assert_array_equal(zoomed, [[1200.0, 3.0, 319.5], [0.0, 1185.0, 239.5], [0.0, 0.0, 1.0]])
     np.testing.assert_array_equal(K, original)
+
+
+def test_undistorting_keeps_the_principal_point_and_moves_a_corner_by_the_radial_share():
+    K = intrinsics(500.0, 481, 361)
+    centre, corner, edge = [240.0, 180.0], [0.0, 0.0], [480.0, 180.0]
+    moved = undistorted_pixels(np.array([centre, corner, edge]), -0.05, K)
+    assert np.allclose(moved[0], centre)
+    # A pincushion lens (below 0) pushed the corner out: through a pinhole it lies 5 % nearer the centre.
+    assert np.allclose(moved[1], [240.0 - 0.95 * 240.0, 180.0 - 0.95 * 180.0])
+    # At the middle of an edge, r^2 is (240 / 300)^2 of the corner's.
+    assert np.allclose(moved[2], [240.0 + 240.0 * (1 - 0.05 * (240.0 / 300.0) ** 2), 180.0])
+    assert np.array_equal(undistorted_pixels(np.array([corner]), 0.0, K), [corner])

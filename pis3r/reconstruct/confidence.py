@@ -3,7 +3,7 @@
 A stitch can look right with a camera tens of degrees off (a homography through a fifth of
 the matches, a focal the matches leave free), and camera.json is what SfM, SLAM or depth
 estimation take from pis3r. So each registered view's relative pose gets an uncertainty in
-degrees of rotation, from two independent sources:
+degrees of rotation, from independent sources:
 
 - ``resampled_deg``: the epipolar inliers are resampled with replacement ``RESAMPLES`` times
   and the pose fitted afresh on each, at the exported focal, by the estimator that made it
@@ -26,6 +26,13 @@ degrees of rotation, from two independent sources:
   widen the focal's interval too (:meth:`pis3r.reconstruct.pairs.PairGeometry.focal_contested`),
   and so ``focal_deg``: the angle alone rested on luck where the matchers disagree on the focal
   more than on the rotation (the crop protocol's ScanNet 0722).
+- ``lens_deg``: where a turn seen through a lens that bends straight lines explains the
+  matches (:func:`lens_distortion`: a rotation with one radial distortion term, ``LENS_RADIAL``
+  at most, at a focal the photos determine), the angle between that rotation and the pose's.
+  A pinhole pose fitted to a hand-held turn through such a lens trades part of the turn for a
+  sideways step: a 360 deg turn of 17 phone photos (``benchmarks/turn_loop.py``) came out 2-7
+  deg too wide per pair with its EXIF focal (the loop 82 deg from closing), steady under
+  resampling, while the rotations with the lens's term are 0.1-1.7 deg from the turn.
 
 The camera is unreliable when any exceeds ``UNRELIABLE_ROTATION_DEG`` or fewer than
 ``FEW_INLIERS`` matches support it; the stitch then says so in one warning
@@ -44,7 +51,7 @@ import numpy as np
 from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.focal import FLAG_SOURCE
+from pis3r.reconstruct.focal import FLAG_SOURCE, fit_rotation
 from pis3r.reconstruct.matching import FEW_INLIERS
 from pis3r.reconstruct.pairs import PairGeometry
 
@@ -56,6 +63,15 @@ RESAMPLED_PERCENTILE = 80
 UNRELIABLE_ROTATION_DEG = 5.0
 # The resamples and the robust fits on them are seeded: a stitch's numbers are repeatable.
 RESAMPLE_SEED = 0
+# A rotation with one radial distortion term explains a pair's matches where its median transfer
+# error is at most this (px at 1024 px): the 17 pairs of a hand-held turn through a phone's lens
+# 1.0-2.4 px but one (4.4); the Strecha and ScanNet pairs, with baselines, 7 and more. Its term
+# counts from LENS_NEGLIGIBLE (about the share a corner moves) up to LENS_RADIAL: that phone's
+# lens 0.04-0.08; where a rotation with a larger term fits, the term stands for parallax, not a
+# lens (four of the turntable's neighbouring views: 2.0-2.9 px with terms of 0.8-2.1).
+LENS_FIT_PX = 3.0
+LENS_NEGLIGIBLE = 0.01
+LENS_RADIAL = 0.15
 
 
 @dataclass(frozen=True)
@@ -63,17 +79,21 @@ class PoseConfidence:
     """How sure one view's relative pose is: ``resampled_deg`` (its rotation's spread over
     resampled matches), ``focal_deg`` (its spread across the focal's interval), ``inliers``
     (the epipolar inliers it rests on), ``rivals_deg`` (how far apart two matchers' poses are
-    that the matches could not tell apart)."""
+    that the matches could not tell apart), ``lens_deg`` (how far it is from the turn the matches
+    show with the lens's distortion taken out, ``lens_radial`` the distortion's term:
+    :func:`lens_distortion`)."""
 
     resampled_deg: float
     focal_deg: float
     inliers: int
     rivals_deg: float = 0.0
+    lens_deg: float = 0.0
+    lens_radial: float = 0.0
 
     @property
     def uncertainty_deg(self) -> float:
         """The largest of the spreads: how far off the rotation may be."""
-        return max(self.resampled_deg, self.focal_deg, self.rivals_deg)
+        return max(self.resampled_deg, self.focal_deg, self.rivals_deg, self.lens_deg)
 
     @property
     def reliable(self) -> bool:
@@ -90,12 +110,17 @@ class PoseConfidence:
             reasons.append(f"the focal lengths the photos allow move it by {self.focal_deg:.0f} deg")
         if self.rivals_deg > UNRELIABLE_ROTATION_DEG:
             reasons.append(f"two matchers' poses {self.rivals_deg:.0f} deg apart explain the matches about as well")
+        if self.lens_deg > UNRELIABLE_ROTATION_DEG:
+            reasons.append(f"the lens bends straight lines (its corners {abs(self.lens_radial):.0%} "
+                           f"{'out' if self.lens_radial < 0 else 'in'}), and the turn its matches show with that "
+                           f"taken out is {self.lens_deg:.0f} deg from it")
         return reasons
 
     def to_dict(self) -> dict:
         return {"rotation_uncertainty_deg": round(self.uncertainty_deg, 3),
                 "resampled_deg": round(self.resampled_deg, 3), "focal_deg": round(self.focal_deg, 3),
-                "rivals_deg": round(self.rivals_deg, 3), "inliers": self.inliers, "reliable": self.reliable}
+                "rivals_deg": round(self.rivals_deg, 3), "lens_deg": round(self.lens_deg, 3),
+                "lens_radial": round(self.lens_radial, 4), "inliers": self.inliers, "reliable": self.reliable}
 
 
 def pair_confidence(pair: PairGeometry) -> PoseConfidence:
@@ -111,8 +136,13 @@ def pair_confidence(pair: PairGeometry) -> PoseConfidence:
                 for end in (interval.low, interval.high)]
         focal_deg = max([interval.rotation_spread_deg] + [180.0 if R is None else rotation_angle_deg(R @ pair.R.T)
                                                           for R in ends])
+    # At a focal the photos leave loose, a radial term trades with the focal (a pure turn at the
+    # prior, 1.6 x its own focal, fits with its corners 12 % out): the focal's spread speaks there.
+    radial, lens_deg = (lens_distortion(pair.inliers, pair.R, pair.K_a, pair.K_b, size_a) if pair.focal_determined
+                        else (0.0, 0.0))
     return replace(pose_confidence(pair.inliers, pair.R, pair.plane, pair.pose_estimator, pair.K_a, pair.K_b,
-                                   size_a, focal_deg), rivals_deg=pair.rivals_apart_deg)
+                                   size_a, focal_deg), rivals_deg=pair.rivals_apart_deg, lens_deg=lens_deg,
+                   lens_radial=radial)
 
 
 def confident_pair(pair: PairGeometry) -> tuple[PairGeometry, PoseConfidence]:
@@ -149,6 +179,25 @@ def pose_confidence(inliers: Matches, R: np.ndarray, plane: np.ndarray | None, e
     return PoseConfidence(float(np.percentile(angles, RESAMPLED_PERCENTILE)), focal_deg, count)
 
 
+def lens_distortion(inliers: Matches, R: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                    size_a: tuple[int, int]) -> tuple[float, float]:
+    """``(radial, degrees)``: the radial distortion term of the lens
+    (:func:`pis3r.camera.undistorted_pixels`) where a rotation with it explains the epipolar
+    ``inliers`` at ``K_a``, ``K_b`` (``LENS_FIT_PX``; a term from ``LENS_NEGLIGIBLE`` to
+    ``LENS_RADIAL``), and the angle between that rotation and ``R``; ``(0, 0)`` where none does.
+    Two photos with a baseline cannot tell a lens's distortion from the scene's depth: only a turn
+    shows it. There the distortion taken out leaves a turn and little or no baseline (an essential
+    matrix fitted to the undistorted matches of the phone's turn, where one fits, is within about
+    a degree of that rotation), so the rotation is what the pose should have been."""
+    if len(inliers) < 8:
+        return 0.0, 0.0
+    fit = fit_rotation(inliers, K_a, K_b, refine_focal=False, radial=True)
+    if (np.median(fit.residuals) > LENS_FIT_PX * geometry.pixel_scale(*size_a)
+            or not LENS_NEGLIGIBLE <= abs(fit.radial) <= LENS_RADIAL):
+        return 0.0, 0.0
+    return fit.radial, rotation_angle_deg(fit.R @ R.T)
+
+
 def _refit_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,
                     K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray | None:
     """The rotation that ``estimator`` (see :func:`pose_confidence`) fits to ``matches`` at
@@ -177,7 +226,8 @@ def _homography_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | No
 def unreliable_warning(name: str, confidence: PoseConfidence, focal_source: str = "") -> str:
     """The one line that says the camera of photo ``name`` cannot be trusted, why, and what may
     fix it (``--focal`` only where the pair's ``focal_source`` is not already the flag)."""
-    remedies = [*([] if focal_source == FLAG_SOURCE else ["pass --focal"]), "add photos between these",
+    lens = ["correct the photos' lens distortion first"] if confidence.lens_deg > UNRELIABLE_ROTATION_DEG else []
+    remedies = [*lens, *([] if focal_source == FLAG_SOURCE else ["pass --focal"]), "add photos between these",
                 "or try --matcher aliked or xfeat"]
     return (f"the camera of {name} is unreliable: its rotation may be {confidence.uncertainty_deg:.0f} deg or more "
             f"off ({'; '.join(confidence.reasons())}); do not use camera.json for SfM as it is: {', '.join(remedies)}")

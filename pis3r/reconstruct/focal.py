@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import focal_scaled, intrinsics, pixel_rays
+from pis3r.camera import focal_scaled, intrinsics, pixel_rays, undistorted_pixels
 from pis3r.features import Matches
 from pis3r.io import Photo
 from pis3r.reconstruct.geometry import pixel_scale
@@ -242,18 +242,24 @@ def rotation_focal(H: np.ndarray, size_a: tuple[int, int], size_b: tuple[int, in
 @dataclass(frozen=True)
 class RotationFit:
     """A pure rotation ``x_b ~ K_b R K_a^-1 x_a`` fitted to matches: ``R`` ``(3, 3)``,
-    ``K_a``, ``K_b``, and ``residuals`` ``(N,)``, the transfer error a -> b in pixels of b."""
+    ``K_a``, ``K_b``, and ``residuals`` ``(N,)``, the transfer error a -> b in pixels of b;
+    ``radial``: the lens's radial distortion term where it was fitted too
+    (:func:`pis3r.camera.undistorted_pixels`; 0 otherwise)."""
 
     R: np.ndarray
     K_a: np.ndarray
     K_b: np.ndarray
     residuals: np.ndarray
+    radial: float = 0.0
 
 
-def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_focal: bool) -> RotationFit:
+def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_focal: bool,
+                 radial: bool = False) -> RotationFit:
     """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
     rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
-    ``refine_focal`` both focals scale together (their ratio is kept)."""
+    ``refine_focal`` both focals scale together (their ratio is kept); with ``radial``, one
+    radial distortion term both photos share is fitted too (one lens), the transfer error then
+    measured between the undistorted pixels."""
     rays_a, rays_b = pixel_rays(matches.pts_a, K_a), pixel_rays(matches.pts_b, K_b)
     # Kabsch start: the rotation that best aligns the unit rays.
     u_a = rays_a / np.linalg.norm(rays_a, axis=1, keepdims=True)
@@ -272,17 +278,22 @@ def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_foca
 
     def transfer(p):
         R, Ka, Kb = unpack(p)
-        projected = pixels_a @ (Kb @ R @ np.linalg.inv(Ka)).T
+        source, target = pixels_a, matches.pts_b
+        if radial:
+            source = np.hstack([undistorted_pixels(matches.pts_a, p[-1], K_a), pixels_a[:, 2:]])
+            target = undistorted_pixels(target, p[-1], K_b)
+        projected = source @ (Kb @ R @ np.linalg.inv(Ka)).T
         with np.errstate(divide="ignore", invalid="ignore"):
-            return projected[:, :2] / projected[:, 2:] - matches.pts_b
+            return projected[:, :2] / projected[:, 2:] - target
 
     def residuals(p):
         return np.nan_to_num(transfer(p), nan=1e6, posinf=1e6, neginf=-1e6).ravel()
 
-    p, _ = robust_least_squares(residuals, np.zeros(4 if refine_focal else 3), loss="soft_l1", scale=scale,
+    p, _ = robust_least_squares(residuals, np.zeros(3 + refine_focal + radial), loss="soft_l1", scale=scale,
                                 max_evaluations=100)
     R, Ka, Kb = unpack(p)
-    return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(p), nan=1e6), axis=1))
+    return RotationFit(R, Ka, Kb, np.linalg.norm(np.nan_to_num(transfer(p), nan=1e6), axis=1),
+                       float(p[-1]) if radial else 0.0)
 
 
 def plausible_focal(focal: float, width: int, height: int) -> bool:
