@@ -223,6 +223,20 @@ def test_a_phone_s_hand_held_turn_is_not_exported_as_a_trusted_camera():
     assert not confidence.reliable and "the lens bends straight lines" in unreliable_warning("13.jpg", confidence)
 
 
+@pytest.mark.slow
+@needs_panorama_data
+def test_a_set_stitched_at_the_focal_given_is_not_told_to_pass_it():
+    """Three photos of the phone's turn, the focal given: the joint fit renames the focal the
+    later views were placed at, yet the warnings on their cameras (the lens) never ask for --focal."""
+    from pis3r.io import downscaled, read_image
+
+    folder = PANORAMA / "NISwGSP-01_PisaCathedralInterior"
+    photos = [downscaled(read_image(folder / f"0{k}.jpg"), 0.375).pixels for k in range(3)]
+    result = pis3r.stitch(photos, backend="classical", refine="none", focal=1122.0)
+    lines = [line for line in result.report["warnings"] if "is unreliable" in line]
+    assert lines and all("the lens bends straight lines" in line and "--focal" not in line for line in lines)
+
+
 def test_the_stitch_reports_each_view_s_pose_confidence(tmp_path):
     a, b, _, _ = general_pair()
     result = pis3r.stitch([a.pixels, b.pixels], backend="classical", refine="none", focal=420.0)

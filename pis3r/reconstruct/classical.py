@@ -32,7 +32,7 @@ from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.confidence import confident_pair, unreliable_warning
-from pis3r.reconstruct.focal import known_focal, partner_focal
+from pis3r.reconstruct.focal import FLAG_SOURCE, known_focal, partner_focal
 from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
@@ -201,8 +201,9 @@ class ClassicalReconstructor:
         for j in sorted(registered.keys() - {0}):
             pairs[j], confidence = confident_pair(pairs[j])
             registered[j] = replace(registered[j], pose_confidence=confidence)
+            source = FLAG_SOURCE if self.options.focal else pairs[j].focal_source  # the joint fit renames a given one
             warnings += [*pairs[j].warnings, *([] if confidence.reliable else [
-                unreliable_warning(photos[j].name, confidence, pairs[j].focal_source)])]
+                unreliable_warning(photos[j].name, confidence, source)])]
         first = pairs[first_view]
         for thread in background:
             thread.join()
@@ -216,8 +217,7 @@ class ClassicalReconstructor:
         return Scene(
             [registered[i] for i in indices], indices, dropped, model=model, model_reason=reason,
             focal=float(first.K_a[0, 0]), focal_source=first.focal_source, focal_interval=first.focal_interval,
-            parallax=first.parallax,
-            warnings=tuple(warnings),
+            parallax=first.parallax, warnings=tuple(warnings),
             info={"backend": self.name, "num_matches": first.num_matches, **first.info,
                   **({"joint_refinement": joint.to_dict()} if joint else {})},
         )
