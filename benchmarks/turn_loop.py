@@ -41,6 +41,7 @@ from pis3r.io import Photo, downscaled, read_image
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.confidence import UNRELIABLE_ROTATION_DEG, confident_pair
+from pis3r.reconstruct.lens import pinhole_photos
 from pis3r.reconstruct.matching import PhotoFeatures, consistent_matches
 from pis3r.reconstruct.options import ReconstructOptions
 
@@ -112,7 +113,9 @@ def exported_rows(photos: list[Photo], reference: list[np.ndarray]) -> list[dict
     for (i, j), R_ref in zip(loop_pairs(len(photos)), reference):
         row = {"pair": f"{i}-{j}"}
         try:
-            pair = ClassicalReconstructor(ReconstructOptions()).cameras(photos[i], photos[j])
+            pinhole, options, lens = pinhole_photos([photos[i], photos[j]], ReconstructOptions(),
+                                                    ClassicalReconstructor(ReconstructOptions()).matched_with)
+            pair = ClassicalReconstructor(options).cameras(*pinhole)
             pair, confidence = confident_pair(pair)
         except Pis3rError as exc:
             rows.append({**row, "refused": str(exc)})
@@ -122,7 +125,8 @@ def exported_rows(photos: list[Photo], reference: list[np.ndarray]) -> list[dict
                      "determined": pair.focal_determined, "R": pair.R, "angle": rotation_angle_deg(pair.R),
                      "off_reference": rotation_angle_deg(pair.R @ R_ref.T), "uncertainty": confidence.uncertainty_deg,
                      "reliable": confidence.reliable, "warnings": len(pair.warnings) + (not confidence.reliable),
-                     "exif_replaced": bool(exif) and abs(pair.K_a[0, 0] - exif) > 0.5})
+                     "lens": lens.radial if lens else 0.0,
+                     "exif_replaced": bool(exif) and abs(pair.K_a[0, 0] - exif * (lens.zoom if lens else 1.0)) > 0.5})
     return rows
 
 
@@ -160,15 +164,17 @@ def main() -> None:
         runs = {"EXIF": photos, "no EXIF": [replace(photo, focal_px=None, focal_evidence="") for photo in photos]}
         for label, inputs in runs.items():
             rows = exported_rows(inputs, reference)
-            print(f"\n{label}\n| pair | model | focal | source | determined | rotation deg | reference deg | off deg "
-                  f"| uncertainty deg | reliable | warnings |\n|---|---|---:|---|---|---:|---:|---:|---:|---|---:|")
+            print(f"\n{label}\n| pair | lens | model | focal | source | determined | rotation deg | reference deg "
+                  f"| off deg | uncertainty deg | reliable | warnings |\n"
+                  f"|---|---:|---|---:|---|---|---:|---:|---:|---:|---|---:|")
             for row, angle in zip(rows, angles):
                 if "refused" in row:
-                    print(f"| {row['pair']} | refused: {row['refused']} | | | | | {angle:.1f} | | | | |")
+                    print(f"| {row['pair']} | | refused: {row['refused']} | | | | | {angle:.1f} | | | | |")
                     continue
-                print(f"| {row['pair']} | {row['model']} | {row['focal']:.0f} | {row['source'].split(' (')[0]} | "
-                      f"{row['determined']} | {row['angle']:.1f} | {angle:.1f} | {row['off_reference']:.1f} | "
-                      f"{row['uncertainty']:.1f} | {row['reliable']} | {row['warnings']} |")
+                print(f"| {row['pair']} | {row['lens']:+.3f} | {row['model']} | {row['focal']:.0f} | "
+                      f"{row['source'].split(' (')[0]} | {row['determined']} | {row['angle']:.1f} | {angle:.1f} | "
+                      f"{row['off_reference']:.1f} | {row['uncertainty']:.1f} | {row['reliable']} | "
+                      f"{row['warnings']} |")
             line = summary(rows)
             closed = "n/a (a pair refused)" if line["closure"] is None else f"{line['closure']:.1f} deg"
             total = "n/a" if line["angle_sum"] is None else f"{line['angle_sum']:.1f} deg"

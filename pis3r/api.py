@@ -5,10 +5,10 @@
     >>> result.image.shape, result.camera.K, result.ref_offset  # doctest: +SKIP
     >>> result.save("out/")                                     # doctest: +SKIP
 
-The pipeline, one stage per module: read (:mod:`pis3r.io`) -> reconstruct
-(:mod:`pis3r.reconstruct`) -> render (:mod:`pis3r.stitch.render`) -> fill holes
-(:mod:`pis3r.stitch.holes`) -> blend (:mod:`pis3r.stitch.blend`) -> refine
-(:mod:`pis3r.refine`) -> :class:`~pis3r.result.StitchResult`.
+The pipeline, one stage per module: read (:mod:`pis3r.io`) -> take out the lens's distortion
+where a turn shows it (:mod:`pis3r.reconstruct.lens`) -> reconstruct (:mod:`pis3r.reconstruct`)
+-> render (:mod:`pis3r.stitch.render`) -> fill holes (:mod:`pis3r.stitch.holes`) -> blend
+(:mod:`pis3r.stitch.blend`) -> refine (:mod:`pis3r.refine`) -> :class:`~pis3r.result.StitchResult`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 from contextlib import nullcontext
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -29,6 +29,8 @@ from pis3r.options import StitchOptions
 from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer, WarningLog
 from pis3r.reconstruct.base import create_backend, resolve_backend_name
+from pis3r.reconstruct.classical import ClassicalReconstructor
+from pis3r.reconstruct.lens import pinhole_photos
 from pis3r.reconstruct.loop import closed_turn, looks_like_a_turn
 from pis3r.reconstruct.options import RECONSTRUCT_MODELS, ReconstructOptions
 from pis3r.refine import resolve_refine
@@ -158,6 +160,19 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     memo: dict = {}
     with timer.stage("choose model"):
         choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
+    # A lens that bends straight lines is taken out first where a turn shows it (the first
+    # pair's matches are the band test's): the choice is made again on the pinhole photos.
+    lens = None
+    if backend == "classical":
+        ordered, backend_options, lens = pinhole_photos(ordered, backend_options,
+                                                        ClassicalReconstructor(backend_options, memo).matched_with)
+    if lens is not None:
+        memo = {}
+        timer.say(f"lens: it pushes the corners {abs(lens.radial):.0%} {'out' if lens.radial < 0 else 'in'} "
+                  f"(a turn through it explains the first pair's matches); the photos are resampled as a "
+                  f"pinhole camera at {lens.zoom:.3f} x their focal sees them")
+        with timer.stage("choose model"):
+            choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
     if choice.chosen is not None:
         backend_options = choice.chosen.backend_options(backend_options)
         if choice.scores:
@@ -173,6 +188,8 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
         if line:
             timer.say(line)
     scene = scene.in_input_order(order)
+    if lens is not None:
+        scene = replace(scene, info={**scene.info, "lens": lens.to_dict()})
     if len(photos) > 2:
         for line in placement_lines(scene, order[0], len(photos)):
             timer.say(line)
@@ -281,6 +298,7 @@ def build_report(scene: Scene, backend: str, choice: ModelChoice, parallax: Para
         "ref_index": ref_index,
         "parallax": parallax.to_dict(),
         "focal": scene.focal_summary(),
+        "lens": scene.info.get("lens"),
         "pose_confidence": [{"index": index, "name": view.name, **view.pose_confidence.to_dict()}
                             for index, view in zip(scene.indices, scene.views) if view.pose_confidence is not None],
         "matches": scene.info.get("num_matches"),

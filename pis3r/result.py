@@ -59,6 +59,7 @@ class StitchResult:
             "ref_index": self.ref_index,
             "convention": CAMERA_CONVENTION,
             "focal": self.scene.focal_summary(),
+            "lens": self.scene.info.get("lens"),
             "inputs": [
                 {"index": index, "name": view.name, **view.camera.to_dict(),
                  "pose_confidence": None if view.pose_confidence is None else view.pose_confidence.to_dict()}

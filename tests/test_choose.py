@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 import pis3r
+from pis3r.features import Matches
 from pis3r.io import Photo
+from pis3r.reconstruct.matching import ConsistentMatches
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.stitch.choose import BAND_HANDICAP_DB, BandScore, Candidate, band_psnr, best_score, candidates, choose_model
 
@@ -142,7 +144,7 @@ def test_the_band_matches_its_copies_as_the_whole_photos_are_and_the_stitch_reus
         return original_reconstruct(self, found)
 
     monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", reconstruct)
-    whole = classical.ClassicalReconstructor(ReconstructOptions()).matched_with(*photos)[0]
+    whole = classical.ClassicalReconstructor(ReconstructOptions()).matched_with(*photos).detector
     detected.clear()
     memo = {}
     choice = choose_model(photos, "classical", ReconstructOptions(), model="auto", memo=memo)
@@ -160,7 +162,8 @@ def test_the_band_turns_its_copies_upright_as_the_whole_photos_were(small_pair, 
 
     seen = []
     original_reconstruct = classical.ClassicalReconstructor.reconstruct
-    monkeypatch.setattr(classical.ClassicalReconstructor, "matched_with", lambda self, ref, other: ("ALIKED", 25.0))
+    aliked = ConsistentMatches(Matches(np.zeros((0, 2)), np.zeros((0, 2))), np.zeros(0, bool), "ALIKED", turn_deg=25.0)
+    monkeypatch.setattr(classical.ClassicalReconstructor, "matched_with", lambda self, ref, other: aliked)
     monkeypatch.setattr(classical.ClassicalReconstructor, "reconstruct", lambda self, found: seen.append(
         (self.options.detector, self.options.turn_deg)) or original_reconstruct(self, found))
     photos = [Photo(np.asarray(image, np.float32) / 255.0, name) for image, name in zip(small_pair, "ab")]

@@ -60,6 +60,7 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     is compared. With ``focal_given``, pis3r is told the GT focal (``--focal``), as EXIF would tell it."""
     from pis3r.reconstruct.classical import ClassicalReconstructor
     from pis3r.reconstruct.confidence import confident_pair
+    from pis3r.reconstruct.lens import pinhole_photos
     from pis3r.reconstruct.options import ReconstructOptions
 
     case = load_case(spec, crop)
@@ -71,7 +72,12 @@ def evaluate_pose(spec: CaseSpec, crop: float, matcher: str = DEFAULT_MATCHER, s
     start = time.perf_counter()
     try:
         options = ReconstructOptions(matcher=matcher, focal=row["gt_focal"] if focal_given else None)
-        pair = ClassicalReconstructor(options).cameras(Photo(reference, "ref"), Photo(target, "tgt"))
+        # As the stitch does: photos of a turn through a lens that bends lines are made pinhole first
+        # (the pair's own fits start from a fresh memo and seed, as without the check).
+        photos, options, lens = pinhole_photos([Photo(reference, "ref"), Photo(target, "tgt")], options,
+                                               ClassicalReconstructor(options).matched_with)
+        pair = ClassicalReconstructor(options).cameras(*photos)
+        row["gt_focal"] *= lens.zoom if lens else 1.0
     except Pis3rError as exc:
         return {**row, "seconds": time.perf_counter() - start, "refused": str(exc)}
     pair, confidence = confident_pair(pair)

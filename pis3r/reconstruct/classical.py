@@ -278,11 +278,10 @@ class ClassicalReconstructor:
                 continue
             registered[j] = view_j.in_world_of(registered[i].camera)
 
-    def matched_with(self, ref: Photo, other: Photo) -> tuple[str, float]:
-        """``(detector, turn_deg)`` of the matches of ``ref`` and ``other`` (memoised, features too)."""
+    def matched_with(self, ref: Photo, other: Photo) -> ConsistentMatches:
+        """The consistent matches of ``ref`` and ``other`` a reconstruction starts from (memoised, features too)."""
         cv2.setRNGSeed(0)
-        found = self._consistent_matches(*self.features([ref, other]))
-        return found.detector, found.turn_deg
+        return self._consistent_matches(*self.features([ref, other]))
 
     def _consistent_matches(self, ref: PhotoFeatures, other: PhotoFeatures, detector: str | None = None,
                             strongest: int | None = None, turn_deg: float | None = None) -> ConsistentMatches:

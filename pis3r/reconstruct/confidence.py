@@ -27,8 +27,9 @@ degrees of rotation, from independent sources:
   and so ``focal_deg``: the angle alone rested on luck where the matchers disagree on the focal
   more than on the rotation (the crop protocol's ScanNet 0722).
 - ``lens_deg``: where a turn seen through a lens that bends straight lines explains the
-  matches (:func:`lens_distortion`: a rotation with one radial distortion term, ``LENS_RADIAL``
-  at most, at a focal the photos determine), the angle between that rotation and the pose's.
+  matches (:func:`lens_distortion`: a rotation with one radial distortion term,
+  :mod:`pis3r.reconstruct.lens`, at a focal the photos determine), the angle between that
+  rotation and the pose's.
   A pinhole pose fitted to a hand-held turn through such a lens trades part of the turn for a
   sideways step: a 360 deg turn of 17 phone photos (``benchmarks/turn_loop.py``) came out 2-7
   deg too wide per pair with its EXIF focal (the loop 82 deg from closing), steady under
@@ -51,7 +52,8 @@ import numpy as np
 from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.focal import FLAG_SOURCE, fit_rotation
+from pis3r.reconstruct.focal import FLAG_SOURCE
+from pis3r.reconstruct.lens import turn_through_lens
 from pis3r.reconstruct.matching import FEW_INLIERS
 from pis3r.reconstruct.pairs import PairGeometry
 
@@ -63,15 +65,6 @@ RESAMPLED_PERCENTILE = 80
 UNRELIABLE_ROTATION_DEG = 5.0
 # The resamples and the robust fits on them are seeded: a stitch's numbers are repeatable.
 RESAMPLE_SEED = 0
-# A rotation with one radial distortion term explains a pair's matches where its median transfer
-# error is at most this (px at 1024 px): the 17 pairs of a hand-held turn through a phone's lens
-# 1.0-2.4 px but one (4.4); the Strecha and ScanNet pairs, with baselines, 7 and more. Its term
-# counts from LENS_NEGLIGIBLE (about the share a corner moves) up to LENS_RADIAL: that phone's
-# lens 0.04-0.08; where a rotation with a larger term fits, the term stands for parallax, not a
-# lens (four of the turntable's neighbouring views: 2.0-2.9 px with terms of 0.8-2.1).
-LENS_FIT_PX = 3.0
-LENS_NEGLIGIBLE = 0.01
-LENS_RADIAL = 0.15
 
 
 @dataclass(frozen=True)
@@ -181,21 +174,14 @@ def pose_confidence(inliers: Matches, R: np.ndarray, plane: np.ndarray | None, e
 
 def lens_distortion(inliers: Matches, R: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
                     size_a: tuple[int, int]) -> tuple[float, float]:
-    """``(radial, degrees)``: the radial distortion term of the lens
-    (:func:`pis3r.camera.undistorted_pixels`) where a rotation with it explains the epipolar
-    ``inliers`` at ``K_a``, ``K_b`` (``LENS_FIT_PX``; a term from ``LENS_NEGLIGIBLE`` to
-    ``LENS_RADIAL``), and the angle between that rotation and ``R``; ``(0, 0)`` where none does.
-    Two photos with a baseline cannot tell a lens's distortion from the scene's depth: only a turn
-    shows it. There the distortion taken out leaves a turn and little or no baseline (an essential
-    matrix fitted to the undistorted matches of the phone's turn, where one fits, is within about
-    a degree of that rotation), so the rotation is what the pose should have been."""
-    if len(inliers) < 8:
-        return 0.0, 0.0
-    fit = fit_rotation(inliers, K_a, K_b, refine_focal=False, radial=True)
-    if (np.median(fit.residuals) > LENS_FIT_PX * geometry.pixel_scale(*size_a)
-            or not LENS_NEGLIGIBLE <= abs(fit.radial) <= LENS_RADIAL):
-        return 0.0, 0.0
-    return fit.radial, rotation_angle_deg(fit.R @ R.T)
+    """``(radial, degrees)``: the radial distortion term of the lens where a turn through it
+    explains the epipolar ``inliers`` at ``K_a``, ``K_b`` (:func:`pis3r.reconstruct.lens.turn_through_lens`),
+    and the angle between that turn and ``R``; ``(0, 0)`` where none does. There the distortion
+    taken out leaves a turn and little or no baseline (an essential matrix fitted to the
+    undistorted matches of the phone's turn, where one fits, is within about a degree of that
+    rotation), so the rotation is what the pose should have been."""
+    fit = turn_through_lens(inliers, K_a, K_b, size_a)
+    return (0.0, 0.0) if fit is None else (fit.radial, rotation_angle_deg(fit.R @ R.T))
 
 
 def _refit_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | None, estimator: str, K_a: np.ndarray,

@@ -188,7 +188,7 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     stitching.features(photos[:BAND_VIEWS])
     with ThreadPoolExecutor(1) as pool:
         copies = pool.submit(ClassicalReconstructor(base, band_memo).features, band_photos)
-        detector, turn_deg = stitching.matched_with(photos[0], photos[1])
+        found = stitching.matched_with(photos[0], photos[1])
         copies.result()
     if memo is not None and len(photos) > BAND_VIEWS:
         # The other photos' features, which the stitch reads next (as it detects them:
@@ -199,13 +199,13 @@ def choose_model(photos: list[Photo], backend: str, base: ReconstructOptions, mo
     with ThreadPoolExecutor(1) as speculation:
         whole = speculation.submit(_whole_scene, guess, photos, base, memo) if guess and memo is not None else None
         scores = _band_scores(allowed, band_photos, band_memo, small[0], margin, band,
-                              replace(base, detector=detector, turn_deg=turn_deg))
+                              replace(base, detector=found.detector, turn_deg=found.turn_deg))
         scene = whole.result() if whole is not None else None
     best = best_score(scores)
     if not math.isfinite(scores[best].psnr):
-        return ModelChoice(None, scores, detector)
+        return ModelChoice(None, scores, found.detector)
     chosen = scores[best].tested
-    return ModelChoice(chosen, scores, detector, scene if chosen == guess else None)
+    return ModelChoice(chosen, scores, found.detector, scene if chosen == guess else None)
 
 
 def _whole_scene(candidate: Candidate, photos: list[Photo], base: ReconstructOptions, memo: dict) -> Scene | None:
