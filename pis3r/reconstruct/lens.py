@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics, undistorted_pixels
+from pis3r.camera import intrinsics
 from pis3r.features import Matches
 from pis3r.io import Photo
 from pis3r.reconstruct import geometry
@@ -48,6 +48,9 @@ LENS_RADIAL = 0.15
 # 1.17-2.03 x, 12 of 16 pairs above LENS_GAIN).
 LENS_CORRECTED = 0.03
 LENS_GAIN = 1.3
+# Rows of a photo whose resampling map is computed at once (memory: a 12 MP photo's map alone is
+# 100 MB; its float64 temporaries would be ten times that).
+MAP_ROWS = 256
 
 
 def turn_through_lens(inliers: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, int]
@@ -76,16 +79,21 @@ def undistorted_photo(photo: Photo, radial: float, focal: float) -> Photo:
     centre, its EXIF focal (if any) zoomed alike."""
     zoom = pinhole_zoom(radial)
     height, width = photo.height, photo.width
-    K = intrinsics(focal, width, height)
-    rows, cols = np.mgrid[0:height, 0:width]
-    centre = K[:2, 2]
-    pinhole = centre + (np.column_stack([cols.ravel(), rows.ravel()]) - centre) / zoom
-    # Where the lens put each pinhole pixel: undistorted_pixels inverted by fixed-point steps
-    # (the term is small: a few steps reach a hundredth of a pixel).
-    seen = pinhole.copy()
-    for _ in range(8):
-        seen += pinhole - undistorted_pixels(seen, radial, K)
-    maps = seen.reshape(height, width, 2).astype(np.float32)
+    centre = intrinsics(focal, width, height)[:2, 2]
+    reach = float(centre @ centre)
+    # The lens moves a pixel along its ray from the centre only: one table of where it put each
+    # distance of the pinhole photo (monotone for any term LENS_RADIAL allows) serves every pixel.
+    seen = np.linspace(0.0, 1.5 * np.sqrt(reach), 4096)
+    pinhole = seen * (1.0 + radial * seen * seen / reach) * zoom
+    maps = np.empty((height, width, 2), np.float32)
+    offset_x = np.arange(width, dtype=np.float32) - np.float32(centre[0])
+    for top in range(0, height, MAP_ROWS):
+        offset_y = np.arange(top, min(top + MAP_ROWS, height), dtype=np.float32)[:, None] - np.float32(centre[1])
+        distance = np.hypot(offset_x[None, :], offset_y)
+        # Near the centre the lens's scale is 1 / zoom (the table's first step is no ratio).
+        scale = np.where(distance > 1.0, np.interp(distance, pinhole, seen) / np.maximum(distance, 1.0), 1.0 / zoom)
+        maps[top:top + len(offset_y), :, 0] = centre[0] + offset_x[None, :] * scale
+        maps[top:top + len(offset_y), :, 1] = centre[1] + offset_y * scale
     pixels = cv2.remap(photo.pixels, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return replace(photo, pixels=pixels, focal_px=photo.focal_px * zoom if photo.focal_px else None)
 
