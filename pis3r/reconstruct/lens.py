@@ -11,8 +11,8 @@ explains the matches of two photos whose focal is known (:func:`turn_through_len
 the lens's. Where it is large enough to matter, every photo of that lens is resampled as a pinhole
 camera would have taken it (:func:`undistorted_photo`) before anything else sees it
 (:func:`lens_corrected`): the stitch is then a true pinhole image, and the poses the turn. Around
-that turn, 12 of the 17 pairs are corrected and come out 0.3-4.2 deg from it (median 1.25), the
-loop 14 deg from closing.
+that turn, 12 of the 17 pairs are corrected and come out 0.2-4.2 deg from it (median 1.25), the
+loop 13.5 deg from closing (82 before).
 """
 
 from __future__ import annotations
