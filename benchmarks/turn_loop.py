@@ -34,13 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pis3r.camera import intrinsics, pixel_rays, rotation_angle_deg
+from pis3r.camera import intrinsics, rotation_angle_deg
 from pis3r.errors import Pis3rError
 from pis3r.features import Matches
 from pis3r.io import Photo, downscaled, read_image
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.classical import ClassicalReconstructor
 from pis3r.reconstruct.confidence import UNRELIABLE_ROTATION_DEG, confident_pair
+from pis3r.reconstruct.focal import aligned_rotation
 from pis3r.reconstruct.lens import pinhole_photos
 from pis3r.reconstruct.matching import PhotoFeatures, consistent_matches
 from pis3r.reconstruct.options import ReconstructOptions
@@ -67,15 +68,6 @@ def loop_pairs(count: int) -> list[tuple[int, int]]:
     return [(i, (i + 1) % count) for i in range(count)]
 
 
-def rotation_between(matches: Matches, K: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` the rotation taking the rays of ``pts_a`` nearest to those of ``pts_b`` (both
-    through ``K``): Kabsch on the unit rays."""
-    rays_a, rays_b = (rays / np.linalg.norm(rays, axis=1, keepdims=True)
-                      for rays in (pixel_rays(matches.pts_a, K), pixel_rays(matches.pts_b, K)))
-    U, _, Vt = np.linalg.svd(rays_b.T @ rays_a)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-
-
 def closure_deg(rotations: list[np.ndarray]) -> float:
     """The angle (degrees) of the relative rotations of a loop composed in order."""
     total = np.eye(3)
@@ -86,13 +78,13 @@ def closure_deg(rotations: list[np.ndarray]) -> float:
 
 def loop_reference(matches: list[Matches], width: int, height: int) -> tuple[float, list[np.ndarray], float]:
     """``(focal, rotations, closure)``: the focal (px) of ``LOOP_FOCALS`` at which the rotations
-    fitted to each pair's ``matches`` (:func:`rotation_between`; photos ``width x height``) close
-    the loop best, those rotations, and the loop's closure there (degrees)."""
+    aligning each pair's ``matches`` (:func:`pis3r.reconstruct.focal.aligned_rotation`; photos
+    ``width x height``) close the loop best, those rotations, and the loop's closure there (degrees)."""
     side = max(width, height)
 
     def at(focal: float) -> list[np.ndarray]:
         K = intrinsics(focal, width, height)
-        return [rotation_between(pair, K) for pair in matches]
+        return [aligned_rotation(pair, K, K) for pair in matches]
 
     focal = min((factor * side for factor in LOOP_FOCALS), key=lambda f: closure_deg(at(f)))
     rotations = at(focal)

@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from pis3r.camera import intrinsics
 from pis3r.features import Matches
+from pis3r.reconstruct.focal import aligned_rotation
 
 from .conftest import load_benchmark
 
@@ -38,7 +39,7 @@ def test_the_loop_closes_at_the_focal_the_turn_was_taken_with():
     assert sum(np.degrees(Rotation.from_matrix(R).magnitude()) for R in rotations) == pytest.approx(360.0, abs=1.0)
     # At a focal 10 % short, each turn is fitted wider and the loop overshoots.
     short = intrinsics(0.9 * FOCAL, WIDTH, HEIGHT)
-    assert turn_loop.closure_deg([turn_loop.rotation_between(pair, short) for pair in matches]) > 10.0
+    assert turn_loop.closure_deg([aligned_rotation(pair, short, short) for pair in matches]) > 10.0
 
 
 def test_the_closure_is_the_angle_of_the_composed_turns():

@@ -13,7 +13,7 @@ from pis3r.features import Matches
 from pis3r.camera import intrinsics, rotation_angle_deg, undistorted_pixels
 from pis3r.reconstruct.confidence import (UNRELIABLE_ROTATION_DEG, PoseConfidence, confident_pair, lens_distortion,
                                           pair_confidence, pose_confidence, unreliable_warning)
-from pis3r.reconstruct.focal import UNDETERMINED_FOCAL, FocalInterval, focal_warning, known_focal
+from pis3r.reconstruct.focal import UNDETERMINED_FOCAL, FocalInterval, focal_warning
 from pis3r.reconstruct.matching import FEW_INLIERS
 from tests.conftest import PANORAMA, REAL, needs_panorama_data, needs_real_data
 from tests.test_self_calibration import cameras_of, general_pair
@@ -139,7 +139,7 @@ def test_a_focal_the_photos_leave_free_makes_the_camera_unreliable():
     assert line.startswith("the camera of tgt.jpg is unreliable: its rotation may be 12 deg or more off")
     assert "the focal lengths the photos allow move it by 12 deg" in line and "--focal" in line and "\n" not in line
     # Told the focal already, the user is not told to pass it.
-    assert "--focal" not in unreliable_warning("tgt.jpg", confidence, known_focal(None, 1000.0)[1])
+    assert "--focal" not in unreliable_warning("tgt.jpg", confidence, focal_given=True)
     assert line.endswith("pass --focal, add photos between these, or try --matcher aliked or xfeat")
     assert confidence.to_dict() == {"rotation_uncertainty_deg": 12.0, "resampled_deg": 0.3, "focal_deg": 12.0,
                                     "rivals_deg": 0.0, "lens_deg": 0.0, "lens_radial": 0.0, "inliers": 400,
@@ -199,7 +199,7 @@ def test_a_turn_through_a_lens_that_bends_lines_shows_how_far_a_pinhole_pose_is_
 def test_a_pose_the_lens_s_distortion_moves_makes_the_camera_unreliable():
     confidence = PoseConfidence(resampled_deg=0.4, focal_deg=0.0, inliers=500, lens_deg=6.4, lens_radial=-0.05)
     assert not confidence.reliable and confidence.uncertainty_deg == 6.4
-    line = unreliable_warning("05.jpg", confidence, "EXIF (EXIF 35mm-equivalent 33 mm)")
+    line = unreliable_warning("05.jpg", confidence)
     assert ("the lens bends straight lines (its corners 5% out), and the turn its matches show with that taken out "
             "is 6 deg from it") in line
     assert "do not use camera.json for SfM as it is: correct the photos' lens distortion first, pass --focal" in line
@@ -228,8 +228,9 @@ def test_a_phone_s_hand_held_turn_is_not_exported_as_a_trusted_camera():
 @needs_panorama_data
 def test_a_set_stitched_at_the_focal_given_is_not_told_to_pass_it():
     """Three photos of the phone's turn, the focal given, the last a few rows shorter (so no one
-    lens is known to take out: pis3r.reconstruct.lens): the joint fit renames the focal the later
-    views were placed at, yet the warnings on their cameras (the lens) never ask for --focal."""
+    lens is known to take out: pis3r.reconstruct.lens): the last is placed through the second
+    (its focal's source then reads 'chained through ...'), yet the warnings on their cameras (the
+    lens) never ask for --focal."""
     from pis3r.io import downscaled, read_image
 
     folder = PANORAMA / "NISwGSP-01_PisaCathedralInterior"

@@ -32,7 +32,7 @@ from pis3r.io import Photo
 from pis3r.parallax import MIN_MATCHES
 from pis3r.reconstruct import geometry
 from pis3r.reconstruct.confidence import confident_pair, unreliable_warning
-from pis3r.reconstruct.focal import FLAG_SOURCE, known_focal, partner_focal
+from pis3r.reconstruct.focal import known_focal, partner_focal
 from pis3r.reconstruct.hypotheses import second_opinion
 from pis3r.reconstruct.options import ReconstructOptions
 from pis3r.reconstruct.joint import JointFit, refine_jointly
@@ -201,9 +201,8 @@ class ClassicalReconstructor:
         for j in sorted(registered.keys() - {0}):
             pairs[j], confidence = confident_pair(pairs[j])
             registered[j] = replace(registered[j], pose_confidence=confidence)
-            source = FLAG_SOURCE if self.options.focal else pairs[j].focal_source  # the joint fit renames a given one
             warnings += [*pairs[j].warnings, *([] if confidence.reliable else [
-                unreliable_warning(photos[j].name, confidence, source)])]
+                unreliable_warning(photos[j].name, confidence, bool(self.options.focal))])]
         first = pairs[first_view]
         for thread in background:
             thread.join()

@@ -52,7 +52,6 @@ import numpy as np
 from pis3r.camera import focal_scaled, rotation_angle_deg
 from pis3r.features import Matches
 from pis3r.reconstruct import geometry
-from pis3r.reconstruct.focal import FLAG_SOURCE
 from pis3r.reconstruct.lens import turn_through_lens
 from pis3r.reconstruct.matching import FEW_INLIERS
 from pis3r.reconstruct.pairs import PairGeometry
@@ -209,11 +208,11 @@ def _homography_rotation(matches: Matches, R: np.ndarray, plane: np.ndarray | No
     return min((s[0] for s in solutions), key=lambda candidate: rotation_angle_deg(candidate @ R.T), default=None)
 
 
-def unreliable_warning(name: str, confidence: PoseConfidence, focal_source: str = "") -> str:
+def unreliable_warning(name: str, confidence: PoseConfidence, focal_given: bool = False) -> str:
     """The one line that says the camera of photo ``name`` cannot be trusted, why, and what may
-    fix it (``--focal`` only where the pair's ``focal_source`` is not already the flag)."""
+    fix it (``--focal`` only where the user has not passed it: ``focal_given``)."""
     lens = ["correct the photos' lens distortion first"] if confidence.lens_deg > UNRELIABLE_ROTATION_DEG else []
-    remedies = [*lens, *([] if focal_source == FLAG_SOURCE else ["pass --focal"]), "add photos between these",
+    remedies = [*lens, *([] if focal_given else ["pass --focal"]), "add photos between these",
                 "or try --matcher aliked or xfeat"]
     return (f"the camera of {name} is unreliable: its rotation may be {confidence.uncertainty_deg:.0f} deg or more "
             f"off ({'; '.join(confidence.reasons())}); do not use camera.json for SfM as it is: {', '.join(remedies)}")

@@ -253,19 +253,24 @@ class RotationFit:
     radial: float = 0.0
 
 
-def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_focal: bool,
-                 radial: bool = False) -> RotationFit:
-    """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
-    rays of b, starting from the rotation nearest ``K_b^-1 H K_a`` of a direct fit; with
-    ``refine_focal`` both focals scale together (their ratio is kept); with ``radial``, one
-    radial distortion term both photos share is fitted too (one lens), the transfer error then
-    measured between the undistorted pixels."""
+def aligned_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` the rotation that best aligns the unit rays of ``pts_a`` (through ``K_a``) with
+    those of ``pts_b`` (through ``K_b``): Kabsch, no weights, every match counted."""
     rays_a, rays_b = pixel_rays(matches.pts_a, K_a), pixel_rays(matches.pts_b, K_b)
-    # Kabsch start: the rotation that best aligns the unit rays.
     u_a = rays_a / np.linalg.norm(rays_a, axis=1, keepdims=True)
     u_b = rays_b / np.linalg.norm(rays_b, axis=1, keepdims=True)
     U, _, Vt = np.linalg.svd(u_b.T @ u_a)
-    R0 = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def fit_rotation(matches: Matches, K_a: np.ndarray, K_b: np.ndarray, refine_focal: bool,
+                 radial: bool = False) -> RotationFit:
+    """Robust least squares (soft L1, 1 px at 1024 px) of the rotation taking rays of a to
+    rays of b, starting from the rays' :func:`aligned_rotation`; with
+    ``refine_focal`` both focals scale together (their ratio is kept); with ``radial``, one
+    radial distortion term both photos share is fitted too (one lens), the transfer error then
+    measured between the undistorted pixels."""
+    R0 = aligned_rotation(matches, K_a, K_b)
     scale = pixel_scale(*K_b[:2, 2] * 2)
 
     def unpack(p):

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from pis3r.camera import intrinsics
+from pis3r.camera import intrinsics, undistorted_pixels
 from pis3r.features import Matches
 from pis3r.io import Photo
 from pis3r.reconstruct import geometry
@@ -79,12 +79,14 @@ def undistorted_photo(photo: Photo, radial: float, focal: float) -> Photo:
     centre, its EXIF focal (if any) zoomed alike."""
     zoom = pinhole_zoom(radial)
     height, width = photo.height, photo.width
-    centre = intrinsics(focal, width, height)[:2, 2]
-    reach = float(centre @ centre)
+    K = intrinsics(focal, width, height)
+    centre = K[:2, 2]
     # The lens moves a pixel along its ray from the centre only: one table of where it put each
-    # distance of the pinhole photo (monotone for any term LENS_RADIAL allows) serves every pixel.
-    seen = np.linspace(0.0, 1.5 * np.sqrt(reach), 4096)
-    pinhole = seen * (1.0 + radial * seen * seen / reach) * zoom
+    # distance of the pinhole photo (monotone for any term LENS_RADIAL allows) serves every pixel,
+    # measured along one ray with the lens's own model (pis3r.camera.undistorted_pixels).
+    seen = np.linspace(0.0, 1.5 * np.sqrt(float(centre @ centre)), 4096)
+    along_x = np.column_stack([centre[0] + seen, np.full_like(seen, centre[1])])
+    pinhole = (undistorted_pixels(along_x, radial, K)[:, 0] - centre[0]) * zoom
     maps = np.empty((height, width, 2), np.float32)
     offset_x = np.arange(width, dtype=np.float32) - np.float32(centre[0])
     for top in range(0, height, MAP_ROWS):
