@@ -156,23 +156,22 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     backend = resolve_backend_name(options.backend, backend_options)
     timer.say(f"backend: {backend}" + (" (auto)" if options.backend == "auto" else ""))
     ordered = [photos[i] for i in order]
-    # The band test matches the first two photos to pick its detector; the stitch reuses that.
+    # The first two photos' matches, found once, serve the lens, the band test and the stitch.
     memo: dict = {}
-    with timer.stage("choose model"):
-        choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
-    # A lens that bends straight lines is taken out first where a turn shows it (the first
-    # pair's matches are the band test's): the choice is made again on the pinhole photos.
+    # A lens that bends straight lines is taken out first where a turn shows it, before the band
+    # test and the stitch see the photos (the matches of its photos are then found again).
     lens = None
     if backend == "classical":
-        ordered, backend_options, lens = pinhole_photos(ordered, backend_options,
-                                                        ClassicalReconstructor(backend_options, memo).matched_with)
+        with timer.stage("lens"):
+            ordered, backend_options, lens = pinhole_photos(ordered, backend_options,
+                                                            ClassicalReconstructor(backend_options, memo).matched_with)
     if lens is not None:
         memo = {}
         timer.say(f"lens: it pushes the corners {abs(lens.radial):.0%} {'out' if lens.radial < 0 else 'in'} "
                   f"(a turn through it explains the first pair's matches); the photos are resampled as a "
                   f"pinhole camera at {lens.zoom:.3f} x their focal sees them")
-        with timer.stage("choose model"):
-            choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
+    with timer.stage("choose model"):
+        choice = choose_model(ordered, backend, backend_options, options.model, options.depth_fill, memo)
     if choice.chosen is not None:
         backend_options = choice.chosen.backend_options(backend_options)
         if choice.scores:

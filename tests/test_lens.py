@@ -84,9 +84,21 @@ def test_only_a_turn_through_one_lens_that_matters_is_corrected():
     assert lens_corrected([a, b], ReconstructOptions(focal=420.0), pair.inliers) is None
 
 
-def test_a_turn_through_a_lens_is_stitched_as_a_pinhole_camera_turning():
+def test_a_turn_through_a_lens_is_stitched_as_a_pinhole_camera_turning(monkeypatch):
     """Two views of one textured panorama, 15 deg apart, seen through a lens that pushes the
-    corners out 6 %, the focal given: the stitch finds the lens, takes it out, and exports the turn."""
+    corners out 6 %, the focal given: the stitch finds the lens, takes it out, and exports the turn.
+    The model is chosen once, on the pinhole photos (a band test of the photos as they came would be
+    thrown away)."""
+    import pis3r.api
+
+    chosen_at = []
+
+    def choose_model(photos, backend, base, *args):
+        chosen_at.append(base.focal)
+        return real_choose_model(photos, backend, base, *args)
+
+    real_choose_model = pis3r.api.choose_model
+    monkeypatch.setattr(pis3r.api, "choose_model", choose_model)
     wide, turn = _texture(1400, 600, seed=3), Rotation.from_euler("y", 15.0, degrees=True).as_matrix()
     source = intrinsics(700.0, 1400, 600)
     zoomed = FOCAL * pinhole_zoom(RADIAL)
@@ -101,6 +113,7 @@ def test_a_turn_through_a_lens_is_stitched_as_a_pinhole_camera_turning():
     assert result.report["lens"]["radial"] == pytest.approx(RADIAL, abs=0.01)
     assert result.camera_json()["lens"] == result.report["lens"]
     assert result.report["focal"]["value"] == pytest.approx(FOCAL * result.report["lens"]["focal_zoom"], rel=1e-4)
+    assert chosen_at == [pytest.approx(result.report["focal"]["value"])]
     R = result.scene.views[result.scene.indices.index(1)].camera.R
     assert rotation_angle_deg(R @ turn.T) < 0.5
     assert not any("is unreliable" in line for line in result.report["warnings"])
