@@ -345,7 +345,7 @@ class ClassicalReconstructor:
         model = "homography" if self.options.model == "apap" else self.options.model
         return estimate_pair(ref, other, found, focal_ref,
                              partner_focal(other.photo, ref.photo, focal_ref, self.options.focal), source,
-                             focal_is_final, model, self.options.focal_rule, self._memoised)
+                             focal_is_final, model, self.options.focal_rule, self._memoised, self.options.turn)
 
     def _placed(self, view: View, pair: PairGeometry, photo: Photo, onto_photo: Photo, onto: int) -> View:
         """``view`` (of ``photo``, paired with ``onto_photo``, view ``onto``), placed onto it by local

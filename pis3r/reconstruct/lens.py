@@ -10,9 +10,11 @@ scene's depth; a turn can. Where a rotation with one radial term (:func:`pis3r.c
 explains the matches of two photos whose focal is known (:func:`turn_through_lens`), that term is
 the lens's. Where it is large enough to matter, every photo of that lens is resampled as a pinhole
 camera would have taken it (:func:`undistorted_photo`) before anything else sees it
-(:func:`lens_corrected`): the stitch is then a true pinhole image, and the poses the turn. Around
-that turn, 12 of the 17 pairs are corrected and come out 0.2-4.2 deg from it (median 1.25), the
-loop 13.5 deg from closing (82 before).
+(:func:`lens_corrected`): the stitch is then a true pinhole image, and the pairs a rotation explains
+export that rotation (``ReconstructOptions.turn``, :func:`pis3r.reconstruct.pairs.turned_pose`).
+Around that turn, 16 of the 17 pairs are corrected and come out 0.1-1.7 deg from it (median 0.4),
+the loop 7.9 deg from closing (82 before), the one left (its matches fit no rotation with a lens's
+term: 4.4 px) 4.9 deg.
 """
 
 from __future__ import annotations
@@ -43,11 +45,17 @@ LENS_RADIAL = 0.15
 # The photos are resampled from this term on (the phone's turn: 0.039-0.082; lpc-plantain, a
 # baseline whose far wall a rotation with a term explains to 2.9 px: 0.019), and where the term
 # explains the matches LENS_GAIN times better (median transfer error) than a pinhole turning at any
-# focal does: a wrong focal is the other way to bend a turn's matches (lpc-APAP-garden, EXIF 750 px:
-# a term of +0.11 at it, 1.25 x better than a pinhole at 983 px; the phone's turn at its EXIF focal
-# 1.17-2.03 x, 12 of 16 pairs above LENS_GAIN).
+# focal does: a wrong focal is the other way to bend a turn's matches. Which way it bends them
+# sets the margin. The common ways a known focal is wrong (a crop, digital zoom recorded as the
+# optical focal, a focal in mm read as a 35 mm equivalent) make the photo narrower than the focal
+# says, which a turn at that focal shows as a term above 0 (lpc-APAP-garden, EXIF 750 px: +0.11,
+# 1.25 x better than a pinhole at 983 px; left as it is). A term below 0 is the lens of a phone or
+# a wide zoom pushing the corners out, and nothing common makes a focal too long: a clear gain is
+# enough (the phone's turn at its EXIF focal: a pinhole at 0.85-0.94 x it fits 1.17-2.03 x worse,
+# 16 of 16 pairs whose turn the term explains; the same phone's Palazzo set 1.19-2.14 on 7 of 10,
+# 0.89-1.08 on the others).
 LENS_CORRECTED = 0.03
-LENS_GAIN = 1.3
+LENS_GAIN = {"in": 1.3, "out": 1.1}
 # Rows of a photo whose resampling map is computed at once (memory: a 12 MP photo's map alone is
 # 100 MB; its float64 temporaries would be ten times that).
 MAP_ROWS = 256
@@ -134,7 +142,7 @@ def lens_corrected(photos: list[Photo], options: ReconstructOptions, first_inlie
     not known to be one (sizes or EXIF focals per pixel differ, or no focal is known), or the
     first pair's epipolar ``first_inliers`` show no turn through a lens that matters
     (``LENS_CORRECTED``), or one that a pinhole at another focal explains about as well
-    (``LENS_GAIN``)."""
+    (``LENS_GAIN``, by whether the lens would push the corners out or in)."""
     ref, focal = photos[0], one_lens_focal(photos, options)
     if focal is None:
         return None
@@ -143,11 +151,12 @@ def lens_corrected(photos: list[Photo], options: ReconstructOptions, first_inlie
     if fit is None or abs(fit.radial) < LENS_CORRECTED:
         return None
     pinhole = fit_rotation(first_inliers, K, K, refine_focal=True)
-    if np.median(pinhole.residuals) < LENS_GAIN * np.median(fit.residuals):
+    if np.median(pinhole.residuals) < LENS_GAIN["out" if fit.radial < 0 else "in"] * np.median(fit.residuals):
         return None
     correction = LensCorrection(fit.radial, pinhole_zoom(fit.radial))
     corrected = [undistorted_photo(photo, fit.radial, focal) for photo in photos]
-    return corrected, replace(options, focal=options.focal * correction.zoom if options.focal else None), correction
+    zoomed = options.focal * correction.zoom if options.focal else None
+    return corrected, replace(options, focal=zoomed, turn=True), correction
 
 
 def pinhole_photos(photos: list[Photo], options: ReconstructOptions,

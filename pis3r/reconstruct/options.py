@@ -51,7 +51,9 @@ class ReconstructOptions:
     not see it (the held-back band test renders only the other views: there it is not);
     ``matcher``: one of :data:`MATCHERS`; ``detector``: one of :data:`FEATURE_DETECTORS`;
     ``turn_deg``: with a learned ``detector``, how far the other photo is turned upright before
-    the network matches it (the held-back band test turns its copies as the whole photos were).
+    the network matches it (the held-back band test turns its copies as the whole photos were);
+    ``turn``: the photos are a turn through one lens, measured where it was taken out
+    (:mod:`pis3r.reconstruct.lens`): a pair a rotation explains exports that rotation.
     """
 
     focal: float | None = None
@@ -65,3 +67,4 @@ class ReconstructOptions:
     matcher: str = DEFAULT_MATCHER
     detector: str = "auto"
     turn_deg: float = 0.0
+    turn: bool = False
