@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 import pis3r
 from pis3r.camera import intrinsics, rotation_angle_deg, undistorted_pixels
 from pis3r.io import Photo
-from pis3r.reconstruct.lens import LENS_CORRECTED, lens_corrected, pinhole_zoom, turn_through_lens, undistorted_photo
+from pis3r.reconstruct.lens import (LENS_CORRECTED, lens_corrected, pinhole_zoom, turn_through_lens, turned_pose,
+                                   undistorted_photo)
 from pis3r.reconstruct.options import ReconstructOptions
-from pis3r.reconstruct.pairs import turned_pose
 from tests.conftest import PANORAMA, needs_panorama_data
 from tests.test_confidence import _turn_through_a_lens
 from tests.test_self_calibration import cameras_of, general_pair

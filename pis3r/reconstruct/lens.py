@@ -11,7 +11,7 @@ explains the matches of two photos whose focal is known (:func:`turn_through_len
 the lens's. Where it is large enough to matter, every photo of that lens is resampled as a pinhole
 camera would have taken it (:func:`undistorted_photo`) before anything else sees it
 (:func:`lens_corrected`): the stitch is then a true pinhole image, and the pairs a rotation explains
-export that rotation (``ReconstructOptions.turn``, :func:`pis3r.reconstruct.pairs.turned_pose`).
+are that rotation (``ReconstructOptions.turn``, :func:`turned_pose`).
 Around that turn, 16 of the 17 pairs are corrected and come out 0.1-1.7 deg from it (median 0.4),
 the loop 7.9 deg from closing (82 before), the one left (its matches fit no rotation with a lens's
 term: 4.4 px) 4.9 deg.
@@ -70,8 +70,26 @@ def turn_through_lens(inliers: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a
     if len(inliers) < 8:
         return None
     fit = fit_rotation(inliers, K_a, K_b, refine_focal=False, radial=True)
-    explained = np.median(fit.residuals) <= LENS_FIT_PX * geometry.pixel_scale(*size_a)
-    return fit if explained and LENS_NEGLIGIBLE <= abs(fit.radial) <= LENS_RADIAL else None
+    return fit if explains(fit, size_a) and LENS_NEGLIGIBLE <= abs(fit.radial) <= LENS_RADIAL else None
+
+
+def turned_pose(inliers: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray | None:
+    """The rotation ``(3, 3)`` at ``K_a``, ``K_b`` that explains the epipolar ``inliers`` of a pair
+    of a known turn (``LENS_FIT_PX``, as it explained the lens's turn); ``None`` where none does.
+    A turn has no depth to find: an essential matrix or a homography's plane fitted to it trades
+    part of the turn for a sideways step. Around the phone's hand-held turn of 17 photos
+    (``benchmarks/turn_loop.py``), their lens taken out, the exported essential matrices and planes
+    were up to 4.2 deg from the turn the loop closes on, where the rotation is within 1.7 deg on
+    every pair; a baseline fitted under that rotation points along the optical axis (it explains
+    what the lens left, not a step) and puts half the points behind the camera."""
+    fit = fit_rotation(inliers, K_a, K_b, refine_focal=False)
+    return fit.R if explains(fit, size_a) else None
+
+
+def explains(fit: RotationFit, size_a: tuple[int, int]) -> bool:
+    """Whether the rotation ``fit`` explains its matches as a turn does: median transfer error at
+    most ``LENS_FIT_PX`` at 1024 px (``size_a``: the reference's ``(width, height)``)."""
+    return bool(np.median(fit.residuals) <= LENS_FIT_PX * geometry.pixel_scale(*size_a))
 
 
 def pinhole_zoom(radial: float) -> float:

@@ -53,7 +53,7 @@ class ReconstructOptions:
     ``turn_deg``: with a learned ``detector``, how far the other photo is turned upright before
     the network matches it (the held-back band test turns its copies as the whole photos were);
     ``turn``: the photos are a turn through one lens, measured where it was taken out
-    (:mod:`pis3r.reconstruct.lens`): a pair a rotation explains exports that rotation.
+    (:mod:`pis3r.reconstruct.lens`): a pair a rotation explains is that rotation, rendered as one.
     """
 
     focal: float | None = None

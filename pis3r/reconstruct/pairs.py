@@ -36,9 +36,9 @@ from pis3r.features import Matches
 from pis3r.parallax import MIN_MATCHES, ParallaxEstimate, parallax_from_matches
 from pis3r.reconstruct import geometry, vanishing
 from pis3r.reconstruct.focal_profile import PROFILE_SOURCE, refined_focal
-from pis3r.reconstruct.focal import (FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval, fit_rotation,
-                                     focal_hypotheses, focal_warning)
-from pis3r.reconstruct.lens import LENS_FIT_PX
+from pis3r.reconstruct.focal import (FOCAL_EVIDENCE, UNDETERMINED_FOCAL, FocalInterval, focal_hypotheses,
+                                     focal_warning)
+from pis3r.reconstruct.lens import turned_pose
 from pis3r.reconstruct.matching import FEW_INLIERS, ConsistentMatches, PhotoFeatures
 from pis3r.reconstruct.self_calibration import checked_known_focal, essential_fit, rotation_fit
 
@@ -178,8 +178,9 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     so the parallax level and the homography, rotation and essential-matrix fits run once:
     every random draw of an estimate is then its first caller's, as it would have been in
     each caller (each starts from one seed). ``turn``: the photos are known to come from a turn
-    (:mod:`pis3r.reconstruct.lens`): where a rotation explains the matches (:func:`turned_pose`),
-    whatever the model, the pair is that rotation, rendered as one."""
+    (:mod:`pis3r.reconstruct.lens`): where a rotation explains the matches
+    (:func:`pis3r.reconstruct.lens.turned_pose`), whatever the model, the pair is that rotation,
+    rendered as one."""
     size_a, size_b = (ref.photo.width, ref.photo.height), (other.photo.width, other.photo.height)
     matches, f_inl = found.matches, found.inliers
     if f_inl.sum() < MIN_MATCHES:
@@ -201,7 +202,9 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     few = f_inl.sum() < FEW_INLIERS
 
     def result(model, reason, K_a, K_b, R, t, plane, source, interval, warnings, details, estimator=None):
-        turned = turned_pose(inliers, K_a, K_b, size_a) if turn else None
+        # The band test's candidates ask again for the same matches at the same intrinsics.
+        turned = remember(("turned", matches_key, K_a.tobytes(), K_b.tobytes()),
+                          lambda: turned_pose(inliers, K_a, K_b, size_a)) if turn else None
         if turned is not None:
             model, reason = "homography", f"{reason}; the photos are a turn, which a rotation explains: rendered as it"
             R, t, plane, estimator = turned, np.zeros(3), None, "homography"
@@ -306,19 +309,6 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
     R, t, n = _supported_decomposition(H, fit.K_a, fit.K_b, inliers)
     reason = f"{why}: a plane seen with a baseline (pose: the decomposition the epipolar inliers support)"
     return result("homography", reason, fit.K_a, fit.K_b, R, t, n, source, interval, warnings, details)
-
-
-def turned_pose(inliers: Matches, K_a: np.ndarray, K_b: np.ndarray, size_a: tuple[int, int]) -> np.ndarray | None:
-    """The rotation ``(3, 3)`` at ``K_a``, ``K_b`` that explains the epipolar ``inliers`` of a pair
-    of a known turn (``LENS_FIT_PX``, as it explained the lens's turn); ``None`` where none does.
-    A turn has no depth to find: an essential matrix or a homography's plane fitted to it trades
-    part of the turn for a sideways step. Around the phone's hand-held turn of 17 photos
-    (``benchmarks/turn_loop.py``), their lens taken out, the exported essential matrices and planes
-    were up to 4.2 deg from the turn the loop closes on, where the rotation is within 1.7 deg on
-    every pair; a baseline fitted under that rotation points along the optical axis (it explains
-    what the lens left, not a step) and puts half the points behind the camera."""
-    fit = fit_rotation(inliers, K_a, K_b, refine_focal=False)
-    return fit.R if np.median(fit.residuals) <= LENS_FIT_PX * geometry.pixel_scale(*size_a) else None
 
 
 def _supported_decomposition(H, K_a, K_b, inliers: Matches):
