@@ -30,7 +30,7 @@ from pis3r.parallax import ParallaxEstimate, estimate_parallax
 from pis3r.progress import StageTimer, WarningLog
 from pis3r.reconstruct.base import create_backend, resolve_backend_name
 from pis3r.reconstruct.classical import ClassicalReconstructor
-from pis3r.reconstruct.lens import pinhole_photos
+from pis3r.reconstruct.lens import one_lens_focal, pinhole_photos
 from pis3r.reconstruct.loop import closed_turn, looks_like_a_turn
 from pis3r.reconstruct.options import RECONSTRUCT_MODELS, ReconstructOptions
 from pis3r.refine import resolve_refine
@@ -159,9 +159,10 @@ def reconstruct(photos, order: list[int], options: StitchOptions, timer: StageTi
     # The first two photos' matches, found once, serve the lens, the band test and the stitch.
     memo: dict = {}
     # A lens that bends straight lines is taken out first where a turn shows it, before the band
-    # test and the stitch see the photos (the matches of its photos are then found again).
+    # test and the stitch see the photos (the matches of its photos are then found again). It is
+    # looked for only where one known focal serves every photo: no stage line where it is not.
     lens = None
-    if backend == "classical":
+    if backend == "classical" and one_lens_focal(ordered, backend_options) is not None:
         with timer.stage("lens"):
             ordered, backend_options, lens = pinhole_photos(ordered, backend_options,
                                                             ClassicalReconstructor(backend_options, memo).matched_with)

@@ -142,8 +142,8 @@ def test_a_focal_the_photos_leave_free_makes_the_camera_unreliable():
     assert "--focal" not in unreliable_warning("tgt.jpg", confidence, focal_given=True)
     assert line.endswith("pass --focal, add photos between these, or try --matcher aliked or xfeat")
     assert confidence.to_dict() == {"rotation_uncertainty_deg": 12.0, "resampled_deg": 0.3, "focal_deg": 12.0,
-                                    "rivals_deg": 0.0, "lens_deg": 0.0, "lens_radial": 0.0, "inliers": 400,
-                                    "reliable": False}
+                                    "rivals_deg": 0.0, "lens_deg": 0.0, "lens_radial": 0.0, "corroboration": 1.0,
+                                    "inliers": 400, "reliable": False}
 
 
 def test_two_matchers_poses_the_matches_cannot_tell_apart_make_the_camera_unreliable():
@@ -151,6 +151,19 @@ def test_two_matchers_poses_the_matches_cannot_tell_apart_make_the_camera_unreli
     assert not confidence.reliable and confidence.uncertainty_deg == 57.0
     assert "two matchers' poses 57 deg apart explain the matches about as well" in unreliable_warning("b", confidence)
     assert PoseConfidence(resampled_deg=1.5, focal_deg=0.0, inliers=400, rivals_deg=3.0).reliable
+
+
+def test_a_pose_no_one_matcher_gives_on_its_own_makes_the_camera_unreliable():
+    """Every matcher's matches together agree on a pose that no one matcher's own pose explains
+    1 / JUDGE_MARGIN as much of: unreliable, however steady, with the reason in the warning."""
+    from pis3r.reconstruct.hypotheses import JUDGE_MARGIN
+
+    lonely = PoseConfidence(resampled_deg=0.2, focal_deg=0.0, inliers=61, corroboration=0.57)
+    assert not lonely.reliable and lonely.uncertainty_deg == 0.2 and lonely.to_dict()["corroboration"] == 0.57
+    line = unreliable_warning("b", lonely)
+    assert line.startswith("the camera of b is unreliable: its rotation may be far off (no one matcher's matches "
+                           "give it on their own (the nearest matcher's pose explains 57% as much)")
+    assert PoseConfidence(resampled_deg=0.2, focal_deg=0.0, inliers=61, corroboration=1.0 / JUDGE_MARGIN).reliable
 
 
 def _turn_through_a_lens(radial: float, turn_deg: float = 20.0, count: int = 400):
@@ -250,7 +263,8 @@ def test_the_stitch_reports_each_view_s_pose_confidence(tmp_path):
     inputs = json.loads((tmp_path / "camera.json").read_text())["inputs"]
     assert inputs[0]["pose_confidence"] is None and inputs[1]["pose_confidence"] == {
         key: entry[key] for key in ("rotation_uncertainty_deg", "resampled_deg", "focal_deg", "rivals_deg", "lens_deg",
-                                    "lens_radial", "inliers", "reliable")}
+                                    "lens_radial", "corroboration", "inliers", "reliable")}
+    assert entry["corroboration"] == 1.0
     assert not any("unreliable" in line for line in result.report["warnings"])
 
 

@@ -146,9 +146,14 @@ def test_a_turn_through_a_lens_is_stitched_as_a_pinhole_camera_turning(monkeypat
 
 
 def test_photos_with_a_baseline_are_stitched_as_they_are():
+    """The lens is looked for (its stage timed) where the focal is known, and not at all where
+    it is not: a stitch with no focal shows no lens stage."""
     a, b, _, _ = general_pair()
     result = pis3r.stitch([a.pixels, b.pixels], backend="classical", refine="none", focal=420.0)
     assert result.report["lens"] is None and result.camera_json()["lens"] is None
+    assert "lens" in result.report["seconds"]
+    unknown = pis3r.stitch([a.pixels, b.pixels], backend="classical", refine="none")
+    assert unknown.report["lens"] is None and "lens" not in unknown.report["seconds"]
 
 
 @pytest.mark.slow

@@ -111,7 +111,9 @@ class ConsistentMatches:
     its focal is the one the poses were judged at; where not, its interval is what the pair's
     focal interval must span.
     ``turn_deg``: how far the other photo was turned upright before a learned network matched
-    it (0: as it is)."""
+    it (0: as it is). ``corroboration``: where the pose is the one every matcher's matches give
+    together (``EVERY_MATCHER``), the most any one matcher's own pose explains of all of them, as a
+    share of what that pose explains; 1 elsewhere."""
 
     matches: Matches
     inliers: np.ndarray
@@ -120,6 +122,7 @@ class ConsistentMatches:
     rival_focals: tuple[float, ...] = ()
     focal_profile: FocalProfile | None = None
     turn_deg: float = 0.0
+    corroboration: float = 1.0
 
 
 # ALIKED's matches at ``SECOND_LOOK_SIDE`` (:mod:`pis3r.reconstruct.hypotheses`).

@@ -69,8 +69,9 @@ class PairGeometry:
     tell apart (:class:`pis3r.reconstruct.focal.FocalInterval`; ``None``: not measured).
     ``pose_estimator``: what fixed ``R``, ``t``: the ``essential`` matrix or the ``homography``
     (its rotation or decomposition). ``rivals_apart_deg``: the matches'
-    (:attr:`ConsistentMatches.rivals_apart_deg`). ``focal_views``: how many views the focal
-    was fitted over (2: this pair's own; more where :mod:`pis3r.reconstruct.joint` refined it)."""
+    (:attr:`ConsistentMatches.rivals_apart_deg`), ``corroboration`` theirs too. ``focal_views``: how
+    many views the focal was fitted over (2: this pair's own; more where :mod:`pis3r.reconstruct.joint`
+    refined it)."""
 
     model: str
     model_reason: str
@@ -90,6 +91,7 @@ class PairGeometry:
     pose_estimator: str = "essential"
     rivals_apart_deg: float = 0.0
     focal_views: int = 2
+    corroboration: float = 1.0
 
     @property
     def focal_determined(self) -> bool:
@@ -211,7 +213,8 @@ def estimate_pair(ref: PhotoFeatures, other: PhotoFeatures, found: ConsistentMat
         pair = PairGeometry(model, reason, parallax, K_a, K_b, R, t, plane, H, inliers, len(matches), source,
                             tuple(warnings),
                             {"features": found.detector, "num_inliers": int(f_inl.sum()), **details}, interval,
-                            estimator or ("essential" if model == "3d" else "homography"), found.rivals_apart_deg)
+                            estimator or ("essential" if model == "3d" else "homography"), found.rivals_apart_deg,
+                            corroboration=found.corroboration)
         # A focal measured on a geometry that few matches support is no measurement (a ScanNet
         # pair's 31 ASIFT inliers pinned 469 px, 60 % off, within 25 %).
         if few and pair.focal_measured:
