@@ -91,7 +91,9 @@ class PhotoFeatures:
         given (:func:`pis3r.learned_features.learned_keypoints`), found once."""
         # XFeat sees the luminance, ALIKED the colours it was trained on.
         image = self.gray if network == "xfeat" else self.photo.pixels
-        side = max_side or LEARNED_NETWORKS[network].max_side
+        # A photo no longer than both sizes is seen as it is at either: ALIKED's second look at a
+        # 640 px photo is its first (found once, not twice: about 0.5 s a photo).
+        side = min(max_side or LEARNED_NETWORKS[network].max_side, max(image.shape[:2]))
         found = self._learned.setdefault((network, side, turn_deg),
                                          Deferred(lambda: learned_keypoints(image, network, side, turn_deg)))
         return found.value()
