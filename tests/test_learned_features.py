@@ -41,20 +41,6 @@ def test_a_learned_matcher_matches_a_real_photo_to_its_shifted_crop(network):
     assert np.all((found.confidence > 0) & (found.confidence <= 1))
 
 
-def test_a_photo_shorter_than_both_looks_is_detected_once():
-    """ALIKED's first look (1024 px) and second look (SECOND_LOOK_SIDE) see a 400 px photo as it
-    is: one detection serves both. A photo longer than the second look gets two."""
-    from pis3r.io import Photo
-    from pis3r.learned_features import SECOND_LOOK_SIDE
-    from pis3r.reconstruct.matching import PhotoFeatures
-
-    a = _shifted_crops(400)[0].astype(np.float32) / 255
-    small = PhotoFeatures(Photo(a, "a"), sift_now=False)
-    assert small.learned("aliked") is small.learned("aliked", SECOND_LOOK_SIDE)
-    large = PhotoFeatures(Photo(cv2.resize(a, (SECOND_LOOK_SIDE + 104,) * 2), "large"), sift_now=False)
-    assert large.learned("aliked") is not large.learned("aliked", SECOND_LOOK_SIDE)
-
-
 def test_matches_found_on_a_small_copy_come_back_refined_in_the_photo_s_pixels():
     a, b = _shifted_crops(400)
     large_a, large_b = (cv2.resize(image, None, fx=2.5, fy=2.5, interpolation=cv2.INTER_CUBIC) for image in (a, b))

@@ -249,23 +249,27 @@ def test_a_photo_s_asift_features_are_detected_once_when_two_pairs_ask_together(
     assert len(calls) == 1 and found[0] is found[1]
 
 
-def test_a_photo_s_learned_keypoints_are_found_once_per_size(monkeypatch):
+@pytest.mark.parametrize("photo_side", [160, 1000])
+def test_a_photo_s_learned_keypoints_are_found_once_per_size(monkeypatch, photo_side):
     """ALIKED runs at its own size and at the second look's, and turned upright once per turn:
-    the network's own size asked by name is the default copy, not a second run."""
+    the network's own size asked by name is the default copy, not a second run; a photo no
+    longer than the second look is seen as it is by both looks, found once."""
     import pis3r.reconstruct.matching as matching
     from pis3r.learned_features import LEARNED_NETWORKS, SECOND_LOOK_SIDE
 
     calls = []
     monkeypatch.setattr(matching, "learned_keypoints",
                         lambda image, network, side, turn: calls.append((network, side, turn)) or object())
-    features = PhotoFeatures(Photo(_texture("astronaut", 160), "ref.png"))
+    features = PhotoFeatures(Photo(_texture("astronaut", photo_side), "ref.png"), sift_now=False)
     default = features.learned("aliked")
     assert features.learned("aliked", LEARNED_NETWORKS["aliked"].max_side) is default
-    assert features.learned("aliked", SECOND_LOOK_SIDE) is not default
-    assert features.learned("aliked", SECOND_LOOK_SIDE) is features.learned("aliked", SECOND_LOOK_SIDE)
+    second = features.learned("aliked", SECOND_LOOK_SIDE)
+    assert (second is default) == (photo_side <= SECOND_LOOK_SIDE)
+    assert features.learned("aliked", SECOND_LOOK_SIDE) is second
     assert features.learned("aliked", None, 30.0) is features.learned("aliked", None, 30.0) is not default
-    side = LEARNED_NETWORKS["aliked"].max_side
-    assert calls == [("aliked", side, 0.0), ("aliked", SECOND_LOOK_SIDE, 0.0), ("aliked", side, 30.0)]
+    side, second_side = (min(look, photo_side) for look in (LEARNED_NETWORKS["aliked"].max_side, SECOND_LOOK_SIDE))
+    assert calls == [("aliked", side, 0.0), *([("aliked", second_side, 0.0)] if second is not default else []),
+                     ("aliked", side, 30.0)]
 
 
 def _shifted_crops(count: int = 2) -> list[PhotoFeatures]:
